@@ -1,0 +1,19 @@
+"""Differentiable Gaussian-splat rasterizers behind one interface.
+
+All backends implement :class:`Rasterizer` with the semantics of the original 3DGS CUDA
+rasterizer (Kerbl et al. 2023):
+
+* EWA projection Sigma2D = J W Sigma W^T J^T + 0.3 I, where J is the perspective Jacobian evaluated at
+  the camera-space centre whose x/z and y/z are clamped to 1.3x the image's half-extent.
+* Splats with camera depth z <= 0.2 are culled; radius = ceil(3 sqrt(lambda_max(Sigma2D))).
+* Pixels are processed in 16x16 tiles; a splat touches the tiles of its square of half-size
+  ``radius`` around its centre (in 3DGS pixel coordinates u - 0.5, v - 0.5).
+* alpha = min(0.99, o * exp(-0.5 d^T Sigma2D^-1 d)), skipped if the exponent is positive or
+  alpha < 1/255; front-to-back compositing in a stable depth order, stopping before the splat that
+  would take the transmittance T below 1e-4; the background adds T_final * bg.
+* Conventions: OpenCV cameras, pixel (i, j) centred at (i + 0.5, j + 0.5), colours [H, W, C].
+"""
+
+from src.rasterizer.base import Rasterizer
+
+__all__ = ["Rasterizer"]
