@@ -1,0 +1,74 @@
+"""Scene and view containers shared by every dataset reader."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from src.core.cameras import Camera
+
+
+class DatasetError(ValueError):
+    """A dataset could not be read: the message names the file, the field and what was expected."""
+
+
+@dataclass
+class View:
+    """One calibrated image.
+
+    Attributes:
+        camera: OpenCV camera (normalised scene coordinates).
+        image: [H, W, 3] float in [0, 1], composited on the scene background.
+        mask: [H, W] float in [0, 1] (foreground alpha), or None if the dataset has no masks.
+        image_id: index of the image within its split (as listed in the file).
+    """
+
+    camera: Camera
+    image: Tensor
+    mask: Tensor | None
+    image_id: int
+
+
+@dataclass
+class Scene:
+    """A loaded scene: training / validation / test views and what describes the scene.
+
+    Attributes:
+        name: scene name (folder name).
+        train, val, test: views; ``train`` holds only the selected sparse views.
+        background: [3] background colour the images were composited on.
+        view_ids: indices (into the full training list) of the selected training views.
+        n_frames: number of time steps (1 for static scenes).
+        normalisation: dict(center=[3], scale=float): world_normalised = scale * (world - center).
+        extent: 1.1 x the largest distance of a training camera from their centroid (3DGS's
+            "cameras extent", used to scale position learning rates and densification thresholds).
+        meta: free-form reader information (format, root, resolution, ...).
+    """
+
+    name: str
+    train: list[View]
+    val: list[View]
+    test: list[View]
+    background: Tensor
+    view_ids: list[int]
+    n_frames: int = 1
+    normalisation: dict = field(default_factory=dict)
+    extent: float = 1.0
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def is_dynamic(self) -> bool:
+        return self.n_frames > 1
+
+    def to(self, device: torch.device | str) -> Scene:
+        """Move every image, mask and camera to ``device`` (in place) and return self."""
+        for views in (self.train, self.val, self.test):
+            for v in views:
+                v.camera = v.camera.to(device)
+                v.image = v.image.to(device)
+                if v.mask is not None:
+                    v.mask = v.mask.to(device)
+        self.background = self.background.to(device)
+        return self

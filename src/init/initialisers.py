@@ -1,0 +1,93 @@
+"""Initial splat centres: visual hull of the training masks, a box, or a finished 3DGS run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from src.data.base import Scene
+from src.data.hull import sample_hull
+
+
+class HullInit:
+    """Points uniform inside the visual hull of the training masks (the paper's protocol).
+
+    Args:
+        n_points: number of points (reference: 100k; CPU scale: fewer).
+        threshold: a point is inside a mask where mask > threshold (reference: 0).
+        box: half-size of the cube the points are drawn from (the normalised scene is in [-1, 1]^3).
+        first_frame_only: for dynamic scenes use only the training views at frame 0 (reference).
+    """
+
+    def __init__(self, n_points: int = 100_000, threshold: float = 0.0, box: float = 1.0,
+                 first_frame_only: bool = True) -> None:
+        self.n_points = n_points
+        self.threshold = threshold
+        self.box = box
+        self.first_frame_only = first_frame_only
+
+    def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
+        views = scene.train
+        if scene.is_dynamic and self.first_frame_only:
+            first = min(v.camera.frame_id for v in views)
+            views = [v for v in views if v.camera.frame_id == first]
+        if any(v.mask is None for v in views):
+            raise ValueError(f"init=hull needs masks, but scene {scene.name} has training views without one")
+        lo = torch.full((3,), -self.box, dtype=torch.float64)
+        hi = torch.full((3,), self.box, dtype=torch.float64)
+        cams = [v.camera.to("cpu") for v in views]
+        masks = [v.mask.cpu() for v in views]
+        return sample_hull(self.n_points, cams, masks, lo, hi, generator, self.threshold)
+
+
+class BoxInit:
+    """Points uniform in the cube [-box, box]^3 (3DGS random init for synthetic scenes)."""
+
+    def __init__(self, n_points: int = 100_000, box: float = 1.0) -> None:
+        self.n_points = n_points
+        self.box = box
+
+    def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
+        return (torch.rand(self.n_points, 3, generator=generator) * 2 - 1) * self.box
+
+
+class FromRunInit:
+    """Splat centres of a finished 3DGS run (the paper's two-stage Blender protocol).
+
+    Reads ``<run_dir>/splats.ply`` (written by every run at the end of training), keeps points inside
+    the training masks' visual hull (reference) and subsamples to ``n_points``.
+
+    Args:
+        run_dir: directory of the finished 3DGS run.
+        n_points: maximum number of points kept.
+        hull_filter: drop points outside the visual hull of the training masks.
+    """
+
+    def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True) -> None:
+        self.run_dir = run_dir
+        self.n_points = n_points
+        self.hull_filter = hull_filter
+
+    def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
+        from src.data.hull import inside_hull
+        from src.io.ply import read_ply
+
+        if self.run_dir is None:
+            raise ValueError("init=from_run needs init.run_dir=<directory of a finished gs3d run>")
+        path = Path(self.run_dir) / "splats.ply"
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{path} not found: produce it with `python -m src.run +experiment=gs3d "
+                f"dataset.root={scene.meta.get('root', '<scene>')} dataset.n_views={len(scene.train)} "
+                f"hydra.run.dir={self.run_dir}`"
+            )
+        pts = read_ply(path).means.float()
+        if self.hull_filter:
+            keep = inside_hull(pts.double(), [v.camera.to("cpu") for v in scene.train],
+                               [v.mask.cpu() for v in scene.train])
+            pts = pts[keep]
+        if pts.shape[0] > self.n_points:
+            pts = pts[torch.randperm(pts.shape[0], generator=generator)[: self.n_points]]
+        return pts

@@ -1,0 +1,72 @@
+"""The model interface used by the trainer, the densification strategies and the evaluator."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import torch
+from torch import Tensor, nn
+
+from src.core.cameras import Camera
+from src.core.splats import Splats
+
+
+class SplatModel(nn.Module, ABC):
+    """A scene representation that yields splats for a camera.
+
+    Subclasses hold per-splat state (free parameters or canonical query points) and implement the
+    densification operations used by :mod:`src.strategy`.
+    """
+
+    @abstractmethod
+    def splats(self, camera: Camera) -> Splats:
+        """Activated splats to render ``camera`` (uses its view direction and time)."""
+
+    def splats_for(self, cameras: list[Camera]) -> list[Splats]:
+        """Splats for several cameras; models may share work between them (same time)."""
+        return [self.splats(c) for c in cameras]
+
+    @abstractmethod
+    def param_groups(self) -> list[dict]:
+        """Optimiser parameter groups, each a dict with ``name`` and ``params``."""
+
+    @property
+    @abstractmethod
+    def n_splats(self) -> int:
+        """Current number of splats."""
+
+    def n_params(self) -> int:
+        """Number of trainable scalars (free splat parameters and network weights)."""
+        return sum(p.numel() for p in self.parameters() if p.requires_grad)
+
+    def bake(self, time: float = 0.0, frame_id: int = 0) -> Splats:
+        """A network-free splat set equivalent to this model at ``time`` (view-independent colours)."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be baked")
+
+    def on_step(self, iteration: int) -> None:
+        """Called at the start of every training iteration (e.g. to raise the SH degree)."""
+
+    # -- densification interface (per-splat state) -------------------------------------------
+    def canonical_means(self) -> Tensor:
+        """[N, 3] per-splat positions the densification acts on."""
+        raise NotImplementedError
+
+    def max_scale(self) -> Tensor:
+        """[N] largest scale of each splat (world units), for the clone/split decision."""
+        raise NotImplementedError
+
+    def opacity_values(self) -> Tensor | None:
+        """[N] current opacities if the model stores them per splat (None for fields)."""
+        return None
+
+    def densify(self, optimizer: torch.optim.Optimizer, clone: Tensor, split: Tensor, n_split: int,
+                generator: torch.Generator) -> None:
+        """Clone splats in ``clone`` and replace those in ``split`` by ``n_split`` smaller children."""
+        raise NotImplementedError(f"{type(self).__name__} does not support densification")
+
+    def prune(self, optimizer: torch.optim.Optimizer, mask: Tensor) -> None:
+        """Remove the splats where ``mask`` is True."""
+        raise NotImplementedError(f"{type(self).__name__} does not support pruning")
+
+    def reset_opacity(self, optimizer: torch.optim.Optimizer, value: float) -> None:
+        """Clamp stored opacities to at most ``value`` (3DGS opacity reset); no-op for fields."""

@@ -1,0 +1,163 @@
+"""The 3DGS baseline: free per-splat parameters (Kerbl et al. 2023)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from src.core.cameras import Camera
+from src.core.splats import Splats
+from src.models.base import SplatModel
+from src.models.knn import knn_base_scale
+from src.models.sh import eval_sh, rgb_to_sh0
+from src.optim.adam import SplatOptimizer, replace_param_rows
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+class GaussianSplatModel(SplatModel):
+    """Free splats: means, log-scales, wxyz quaternions, logit-opacities, SH colour coefficients.
+
+    Args:
+        init: [N, 3] initial centres (normalised world coordinates).
+        sh_degree: maximum SH degree (0 = view-independent RGB).
+        sh_degree_interval: raise the active degree every this many iterations (3DGS: 1000).
+        init_opacity: initial opacity (3DGS: 0.1).
+        init_color: initial RGB of every splat.
+        init_scale_mult: multiplier on the kNN base scale.
+        method: label of the method in run records.
+    """
+
+    def __init__(self, init: Tensor, sh_degree: int = 3, sh_degree_interval: int = 1000,
+                 init_opacity: float = 0.1, init_color: float = 0.5, init_scale_mult: float = 1.0,
+                 method: str = "gs3d", **_: object) -> None:
+        super().__init__()
+        n = init.shape[0]
+        self.method = method
+        self.max_sh_degree = sh_degree
+        self.sh_degree_interval = sh_degree_interval
+        self.active_sh_degree = 0
+        scales = torch.log(knn_base_scale(init) * init_scale_mult)[:, None].repeat(1, 3)
+        quats = torch.zeros(n, 4)
+        quats[:, 0] = 1.0
+        k = (sh_degree + 1) ** 2
+        self.params = nn.ParameterDict({
+            "means": nn.Parameter(init.float().clone()),
+            "scales": nn.Parameter(scales.float()),
+            "quats": nn.Parameter(quats),
+            "opacities": nn.Parameter(torch.full((n,), _logit(init_opacity))),
+            "sh0": nn.Parameter(rgb_to_sh0(torch.full((n, 1, 3), float(init_color)))),
+            "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
+        })
+
+    @property
+    def n_splats(self) -> int:
+        return self.params["means"].shape[0]
+
+    def param_groups(self) -> list[dict]:
+        return [{"name": k, "params": [p]} for k, p in self.params.items()]
+
+    def on_step(self, iteration: int) -> None:
+        if self.sh_degree_interval > 0:
+            self.active_sh_degree = min(self.max_sh_degree, iteration // self.sh_degree_interval)
+
+    def colors(self, camera: Camera | None) -> Tensor:
+        """[N, 3] colours seen from ``camera`` (SH at the active degree; DC only if camera is None)."""
+        coeffs = torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
+        if camera is None or self.active_sh_degree == 0:
+            return torch.clamp_min(eval_sh(0, coeffs, coeffs[:, 0]) + 0.5, 0.0)
+        dirs = self.params["means"] - camera.center.to(self.params["means"])
+        dirs = F.normalize(dirs, dim=-1)
+        return torch.clamp_min(eval_sh(self.active_sh_degree, coeffs, dirs) + 0.5, 0.0)
+
+    def splats(self, camera: Camera) -> Splats:
+        p = self.params
+        return Splats(means=p["means"], scales=torch.exp(p["scales"]), quats=p["quats"],
+                      opacities=torch.sigmoid(p["opacities"]), colors=self.colors(camera))
+
+    def bake(self, time: float = 0.0, frame_id: int = 0) -> Splats:
+        """Activated splats with DC colours (view dependence dropped only if sh_degree > 0)."""
+        with torch.no_grad():
+            p = self.params
+            return Splats(means=p["means"].clone(), scales=torch.exp(p["scales"]),
+                          quats=F.normalize(p["quats"], dim=-1), opacities=torch.sigmoid(p["opacities"]),
+                          colors=self.colors(None))
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Load a checkpoint whose splat count may differ from the current one (resizes first)."""
+        for name in list(self.params.keys()):
+            key = f"params.{name}"
+            if key in state_dict and state_dict[key].shape != self.params[name].shape:
+                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key]))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    # -- densification ---------------------------------------------------------------------
+    def canonical_means(self) -> Tensor:
+        return self.params["means"].detach()
+
+    def max_scale(self) -> Tensor:
+        return torch.exp(self.params["scales"].detach()).max(dim=1).values
+
+    def opacity_values(self) -> Tensor:
+        return torch.sigmoid(self.params["opacities"].detach())
+
+    def _edit(self, optimizer: SplatOptimizer | None, keep: Tensor | None,
+              new: dict[str, Tensor] | None) -> None:
+        n_new = 0 if new is None else next(iter(new.values())).shape[0]
+        for name in list(self.params.keys()):
+            old = self.params[name]
+            data = old.data if keep is None else old.data[keep]
+            if new is not None:
+                data = torch.cat([data, new[name].to(data)])
+            self.params[name] = replace_param_rows(optimizer, old, data, keep, n_new)
+
+    def densify(self, optimizer: SplatOptimizer | None, clone: Tensor, split: Tensor, n_split: int,
+                generator: torch.Generator) -> None:
+        """3DGS clone (copy) and split (``n_split`` children sampled from the parent, scale / 1.6)."""
+        p = {k: v.data for k, v in self.params.items()}
+        new = {k: v[clone] for k, v in p.items()}
+        if split.any():
+            idx = torch.nonzero(split).squeeze(1)
+            s = torch.exp(p["scales"][idx]).repeat(n_split, 1)
+            q = F.normalize(p["quats"][idx], dim=-1).repeat(n_split, 1)
+            samples = torch.randn(s.shape, generator=generator).to(s) * s
+            rot = _quat_to_rotmat(q)
+            children = {k: v[idx].repeat(n_split, *([1] * (v.ndim - 1))) for k, v in p.items()}
+            children["means"] = torch.einsum("nij,nj->ni", rot, samples) + p["means"][idx].repeat(n_split, 1)
+            children["scales"] = torch.log(s / (0.8 * n_split))
+            new = {k: torch.cat([new[k], children[k]]) for k in p}
+        self._edit(optimizer, None, new)
+        if split.any():
+            n_total = self.n_splats
+            keep = torch.ones(n_total, dtype=torch.bool)
+            keep[: split.shape[0]][split] = False
+            self._edit(optimizer, keep, None)
+
+    def prune(self, optimizer: SplatOptimizer | None, mask: Tensor) -> None:
+        self._edit(optimizer, ~mask, None)
+
+    def reset_opacity(self, optimizer: SplatOptimizer | None, value: float) -> None:
+        """3DGS opacity reset: opacity = min(opacity, value), Adam moments of opacities zeroed."""
+        o = self.params["opacities"]
+        new = torch.minimum(o.data, torch.full_like(o.data, _logit(value)))
+        self.params["opacities"] = replace_param_rows(optimizer, o, new, None, 0)
+        if optimizer is not None:
+            st = optimizer.optimizer.state.get(self.params["opacities"])
+            if st:
+                st["exp_avg"].zero_()
+                st["exp_avg_sq"].zero_()
+
+
+def _quat_to_rotmat(q: Tensor) -> Tensor:
+    """[N, 3, 3] rotation matrices of unit quaternions [N, 4] (w, x, y, z)."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(-1, 3, 3)

@@ -1,0 +1,137 @@
+"""Entry point: ``python -m src.run [+experiment=NAME] [group=option ...] [key=value ...] [+ci=smoke]``.
+
+Builds every component from its config group through :func:`src.utils.instantiate.build`, trains,
+evaluates and writes the run record ``metrics.json`` (atomically, also when the run fails).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import traceback
+from pathlib import Path
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from src.trainer.guard import DivergenceError
+from src.utils.instantiate import build
+from src.utils.memory import peak_memory_mb
+from src.utils.record import env_info, read_json, write_json
+from src.utils.seed import seed_everything
+
+log = logging.getLogger("src.run")
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if not OmegaConf.has_resolver("repo"):
+    OmegaConf.register_new_resolver("repo", lambda: str(REPO_ROOT))
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda if available else cpu; otherwise the named device."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def hydra_context() -> dict:
+    """Group choices, overrides and output dir of the current Hydra job (empty outside Hydra)."""
+    try:
+        hc = HydraConfig.get()
+    except ValueError:
+        return {"choices": {}, "overrides": [], "output_dir": None}
+    choices = {k: v for k, v in OmegaConf.to_container(hc.runtime.choices).items()
+               if not k.startswith("hydra/") and v is not None}
+    return {"choices": choices, "overrides": list(hc.overrides.task), "output_dir": hc.runtime.output_dir}
+
+
+def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
+    """Train and evaluate one configuration; returns the run record (also written to metrics.json)."""
+    ctx = hydra_context()
+    run_dir = Path(run_dir or ctx["output_dir"] or cfg.paths.output_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    metrics_path = run_dir / "metrics.json"
+    previous = read_json(metrics_path)
+    if cfg.get("skip_if_done", True) and previous and previous.get("status") == "ok":
+        log.info("%s already says status ok: skipping (set skip_if_done=false to re-run)", metrics_path)
+        return previous
+    device = resolve_device(cfg.device)
+    record: dict = {
+        "status": "running", "error": None, "reason": None,
+        "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
+        "choices": ctx["choices"], "overrides": ctx["overrides"],
+        "keys": {"scene": None, "n_views": cfg.dataset.get("n_views"), "seed": cfg.seed,
+                 "iterations": cfg.trainer.iterations, **OmegaConf.to_container(cfg.get("extra_keys", {}))},
+        "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
+        "env": env_info(device), "run_dir": str(run_dir),
+    }
+    t0 = time.perf_counter()
+    try:
+        generator = seed_everything(cfg.seed)
+        torch.set_num_threads(cfg.threads) if cfg.get("threads") else None
+        dataset = build(cfg.dataset)
+        scene = dataset.load().to(device)
+        record["keys"]["scene"] = scene.name
+        record["views"] = scene.view_ids
+        rasterizer = build(cfg.rasterizer)
+        init_points = build(cfg.init)(scene, generator)
+        model = build(cfg.model, init=init_points.to(device), scene=scene).to(device)
+        loss_fn = build(cfg.loss)
+        strategy = build(cfg.strategy, extent=scene.extent)
+        optim_factory = build(cfg.optim)
+
+        def make_optimizer(m):
+            return optim_factory(groups=m.param_groups(), extent=scene.extent)
+
+        trainer = build(cfg.trainer)
+        train_stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir,
+                                  generator, seed=cfg.seed)
+        evaluator = build(cfg.eval)
+        ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
+        per_view = ev.pop("per_view_test")
+        record["metrics"] = {
+            "psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
+            "n_params": model.n_params(), "train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
+            "peak_mem_mb": peak_memory_mb(device), **ev,
+            **{f"iter_{k}": v for k, v in train_stats["timing"].items()},
+        }
+        record["per_view"] = per_view
+        record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
+        write_artifacts(model, run_dir)
+        record["status"] = "ok"
+        log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
+                 record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
+    except DivergenceError as e:
+        record.update(status="failed", reason=f"divergence: {e}", error=str(e))
+        log.error("run diverged: %s", e)
+    except BaseException as e:
+        record.update(status="failed", error=f"{type(e).__name__}: {e}",
+                      traceback=traceback.format_exc(limit=20))
+        raise
+    finally:
+        record["wall_s"] = time.perf_counter() - t0
+        write_json(metrics_path, record)
+    return record
+
+
+def write_artifacts(model, run_dir: Path) -> None:
+    """The baked splat set as a 3DGS PLY (``splats.ply``), read by ``init=from_run`` and viewers."""
+    from src.io.ply import write_ply
+
+    try:
+        baked = model.bake()
+    except NotImplementedError:
+        return
+    if baked.colors.shape[1] == 3:
+        write_ply(run_dir / "splats.ply", baked.to("cpu"))
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="config")
+def main(cfg: DictConfig) -> float | None:
+    record = run(cfg)
+    return record.get("metrics", {}).get("psnr")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,185 @@
+"""The optimisation loop shared by every method."""
+
+from __future__ import annotations
+
+import logging
+import math
+import random
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from src.data.base import Scene, View
+from src.models.base import SplatModel
+from src.optim.adam import SplatOptimizer
+from src.rasterizer.base import Rasterizer
+from src.strategy.base import Strategy
+from src.trainer.guard import DivergenceGuard
+from src.utils.record import atomic_write_bytes
+
+log = logging.getLogger(__name__)
+
+
+def _mse_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.detach() - b) ** 2).mean())
+    return math.inf if mse == 0 else -10 * math.log10(mse)
+
+
+class Trainer:
+    """Trains a :class:`SplatModel` on a :class:`Scene`.
+
+    Args:
+        iterations: optimisation steps.
+        views_per_step: training views rendered per step; for dynamic scenes they share one time
+            (the paper's 4D protocol renders 5 views of one frame and averages their losses).
+        log_every: TensorBoard / progress-bar update interval.
+        image_every: TensorBoard image interval (0 = never).
+        ckpt_every: checkpoint interval (0 = only at the end). Checkpoints are written atomically.
+        resume: resume from ``<run>/checkpoint.pt`` if it exists.
+        progress: show a tqdm progress bar.
+        tensorboard: write TensorBoard scalars and images under ``<run>/tb``.
+        guard: divergence-guard settings (see :class:`DivergenceGuard`).
+    """
+
+    def __init__(self, iterations: int = 30_000, views_per_step: int = 1, log_every: int = 50,
+                 image_every: int = 0, ckpt_every: int = 0, resume: bool = True, progress: bool = True,
+                 tensorboard: bool = True, guard: dict | None = None) -> None:
+        self.iterations = iterations
+        self.views_per_step = views_per_step
+        self.log_every = log_every
+        self.image_every = image_every
+        self.ckpt_every = ckpt_every
+        self.resume = resume
+        self.progress = progress
+        self.tensorboard = tensorboard
+        self.guard_cfg = dict(guard or {})
+
+    # -- view sampling -----------------------------------------------------------------------
+    def sample_views(self, scene: Scene, rng: random.Random) -> list[View]:
+        """Random training views for one step: one random frame, then up to ``views_per_step`` of its views."""
+        by_frame: dict[int, list[View]] = defaultdict(list)
+        for v in scene.train:
+            by_frame[v.camera.frame_id].append(v)
+        frames = sorted(by_frame)
+        views = by_frame[frames[rng.randrange(len(frames))]]
+        k = min(self.views_per_step, len(views))
+        return rng.sample(views, k)
+
+    # -- checkpoints -------------------------------------------------------------------------
+    @staticmethod
+    def save_checkpoint(path: Path, model: SplatModel, optimizer: SplatOptimizer, strategy: Strategy,
+                        iteration: int, rng: random.Random, generator: torch.Generator, extra: dict) -> None:
+        import io
+
+        buf = io.BytesIO()
+        torch.save({
+            "iteration": iteration, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+            "strategy": strategy.state_dict(), "py_rng": rng.getstate(), "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),  # noqa: NPY002 - restores libraries' global RNG
+            "generator": generator.get_state(), "extra": extra,
+        }, buf)
+        atomic_write_bytes(path, buf.getvalue())
+
+    # -- main loop ---------------------------------------------------------------------------
+    def fit(self, model: SplatModel, scene: Scene, rasterizer: Rasterizer, loss_fn: Callable,
+            make_optimizer: Callable[[SplatModel], SplatOptimizer], strategy: Strategy, run_dir: Path,
+            generator: torch.Generator, seed: int = 0) -> dict:
+        """Optimise ``model``; returns training statistics (train_s, iter_ms, timing split, ...)."""
+        run_dir = Path(run_dir)
+        ckpt_path = run_dir / "checkpoint.pt"
+        rng = random.Random(seed)
+        guard = DivergenceGuard(**self.guard_cfg)
+        optimizer = make_optimizer(model)
+        start = 0
+        prev_train_s = 0.0
+        if self.resume and ckpt_path.is_file():
+            ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+            model.load_state_dict(ck["model"])
+            optimizer = make_optimizer(model)
+            optimizer.load_state_dict(ck["optimizer"])
+            strategy.load_state_dict(ck["strategy"])
+            rng.setstate(ck["py_rng"])
+            torch.set_rng_state(ck["torch_rng"])
+            np.random.set_state(ck["np_rng"])  # noqa: NPY002
+            generator.set_state(ck["generator"])
+            start = ck["iteration"] + 1
+            prev_train_s = ck["extra"].get("train_s", 0.0)
+            log.info("resumed from %s at iteration %d", ckpt_path, start)
+
+        writer = None
+        if self.tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            writer = SummaryWriter(str(run_dir / "tb"))
+        timing = defaultdict(float)
+        n_timed = 0
+        t_start = time.perf_counter()
+        bar = tqdm(range(start, self.iterations), disable=not self.progress, dynamic_ncols=True,
+                   desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
+        psnr_val = math.nan
+        for it in bar:
+            t0 = time.perf_counter()
+            model.on_step(it)
+            lrs = optimizer.set_step(it)
+            views = self.sample_views(scene, rng)
+            cams = [v.camera for v in views]
+            splats = model.splats_for(cams)
+            t1 = time.perf_counter()
+            renders = [rasterizer.render(s, c, scene.background) for s, c in zip(splats, cams, strict=True)]
+            for r in renders:
+                if r.means2d.requires_grad:
+                    r.means2d.retain_grad()
+            t2 = time.perf_counter()
+            terms = loss_fn(renders, views, splats, iteration=it)
+            guard.check_loss(terms["total"], it)
+            terms["total"].backward()
+            t3 = time.perf_counter()
+            guard.check_gradients(model.parameters(), it)
+            strategy.after_backward(model, renders, it)
+            optimizer.step()
+            optimizer.zero_grad()
+            dens = strategy.after_step(model, optimizer, it, generator)
+            guard.check_splats(model.n_splats, it)
+            t4 = time.perf_counter()
+            psnr_val = sum(_mse_psnr(r.color, v.image) for r, v in zip(renders, views, strict=True)) / len(views)
+            guard.check_psnr(psnr_val, it)
+            if it > start:  # the first iteration includes one-off costs (JIT build, caches)
+                timing["field"] += t1 - t0
+                timing["rasterizer"] += t2 - t1
+                timing["backward"] += t3 - t2
+                timing["optimizer"] += t4 - t3
+                n_timed += 1
+            if it % self.log_every == 0 or it == self.iterations - 1:
+                bar.set_postfix(loss=f"{float(terms['total'].detach()):.4f}", psnr=f"{psnr_val:.2f}", n=model.n_splats)
+                if writer is not None:
+                    for k, v in terms.items():
+                        writer.add_scalar(f"loss/{k}", float(v.detach()), it)
+                    writer.add_scalar("train/psnr", psnr_val, it)
+                    writer.add_scalar("train/n_splats", model.n_splats, it)
+                    for k, v in lrs.items():
+                        writer.add_scalar(f"lr/{k}", v, it)
+                    for k, v in dens.items():
+                        writer.add_scalar(f"densify/{k}", v, it)
+            if writer is not None and self.image_every and it % self.image_every == 0:
+                writer.add_image("train/render", renders[0].color.detach().clamp(0, 1), it, dataformats="HWC")
+                writer.add_image("train/gt", views[0].image, it, dataformats="HWC")
+            if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
+                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator,
+                                     {"train_s": prev_train_s + time.perf_counter() - t_start})
+        bar.close()
+        train_s = prev_train_s + time.perf_counter() - t_start
+        if self.iterations > start:
+            self.save_checkpoint(ckpt_path, model, optimizer, strategy, self.iterations - 1, rng, generator,
+                                 {"train_s": train_s})
+        if writer is not None:
+            writer.close()
+        n = max(n_timed, 1)
+        split = {f"{k}_ms": 1000 * v / n for k, v in timing.items()}
+        iter_ms = sum(split.values()) if n_timed else math.nan
+        return {"train_s": train_s, "iter_ms": iter_ms, "timing": split, "final_train_psnr": psnr_val,
+                "resumed_from": start}

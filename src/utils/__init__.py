@@ -1,0 +1,1 @@
+"""Small utilities: the single instantiate call site, run records, seeding, environment info."""
