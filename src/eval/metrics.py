@@ -25,11 +25,16 @@ def ssim_eval(a: Tensor, b: Tensor) -> float:
     """SSIM of [H, W, 3] images in [0, 1]: Gaussian window sigma 1.5 (11 taps), population statistics.
 
     Equals the JAX/Nerfies ``compute_ssim`` used by the reference evaluation (k1 0.01, k2 0.03).
+    Images smaller than the 11-pixel window (CI smoke sizes) use the largest odd window that fits.
     """
     x = a.detach().cpu().double().numpy()
     y = b.detach().cpu().double().numpy()
+    side = min(x.shape[0], x.shape[1])
+    if side < 3:
+        return math.nan
+    win = None if side >= 11 else (side if side % 2 else side - 1)
     return float(structural_similarity(x, y, data_range=1.0, channel_axis=-1, gaussian_weights=True,
-                                       sigma=1.5, use_sample_covariance=False))
+                                       sigma=1.5, use_sample_covariance=False, win_size=win))
 
 
 def mean_finite(values: list[float]) -> float:

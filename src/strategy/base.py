@@ -14,10 +14,12 @@ class Strategy:
 
     Args:
         max_splats: hard cap on the number of splats (None = unbounded).
+        extent: scene extent (passed at run time from the dataset; scales world-space thresholds).
     """
 
-    def __init__(self, max_splats: int | None = None) -> None:
+    def __init__(self, max_splats: int | None = None, extent: float = 1.0) -> None:
         self.max_splats = max_splats
+        self.extent = extent
 
     def after_backward(self, model: SplatModel, renders: list[RenderOutput], iteration: int) -> None:
         """Accumulate statistics from the gradients of this iteration (before the optimiser step)."""

@@ -33,7 +33,7 @@ class ADCStrategy(Strategy):
                  stop_iter: int = 15_000, every: int = 100, prune_opacity: float = 0.005,
                  prune_big_world: float = 0.1, reset_every: int = 3000, reset_value: float = 0.01,
                  n_split: int = 2, max_splats: int | None = None, extent: float = 1.0) -> None:
-        super().__init__(max_splats)
+        super().__init__(max_splats, extent)
         self.grad_threshold = grad_threshold
         self.percent_dense = percent_dense
         self.start_iter, self.stop_iter, self.every = start_iter, stop_iter, every
@@ -42,7 +42,6 @@ class ADCStrategy(Strategy):
         self.reset_every = reset_every
         self.reset_value = reset_value
         self.n_split = n_split
-        self.extent = extent
         self.grad_accum: torch.Tensor | None = None
         self.count: torch.Tensor | None = None
 
