@@ -1,0 +1,142 @@
+"""Spatial feature backbones: point positions [N, 3] -> per-point features [N, F].
+
+A backbone splits its work in two so that a training step rendering several views of the same
+time evaluates the expensive part (e.g. the tri-plane CNN) once:
+
+* ``prepare()`` computes the per-step state (the planes) and returns it;
+* ``sample(state, points)`` looks features up for the given points;
+* ``forward(points) == sample(prepare(), points)``.
+
+Implementations: ``CNNTriplaneBackbone`` (SplatFields, supplementary B.2), ``NoBackbone`` /
+``MLPBackbone`` (feature_dim 0, the "MLP" ablation rows). A hash-grid backbone can be added by
+subclassing ``FieldBackbone`` (not implemented).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from src.fields.triplane import TriplaneGenerator
+
+
+class FieldBackbone(nn.Module, ABC):
+    """Abstract backbone mapping points [N, 3] (assumed in [-1, 1]^3) to features [N, feature_dim]."""
+
+    @property
+    @abstractmethod
+    def feature_dim(self) -> int:
+        """Width F of the per-point features."""
+
+    @abstractmethod
+    def prepare(self) -> Any:
+        """Compute the per-step state shared by all ``sample`` calls of one step (may be None)."""
+
+    @abstractmethod
+    def sample(self, state: Any, points: Tensor) -> Tensor:
+        """Features [N, feature_dim] of ``points`` [N, 3] given ``state = prepare()``."""
+
+    def forward(self, points: Tensor) -> Tensor:
+        """Features [N, feature_dim] of ``points`` [N, 3] (prepare + sample)."""
+        return self.sample(self.prepare(), points)
+
+
+class NoBackbone(FieldBackbone):
+    """No spatial features (feature_dim 0): the heads see only the positional encoding."""
+
+    @property
+    def feature_dim(self) -> int:
+        return 0
+
+    def prepare(self) -> None:
+        """Nothing to prepare."""
+        return None
+
+    def sample(self, state: Any, points: Tensor) -> Tensor:
+        """An empty feature [N, 0]."""
+        return points.new_zeros(points.shape[0], 0)
+
+
+class MLPBackbone(NoBackbone):
+    """Alias of ``NoBackbone`` for the ablation "MLP" rows (pure MLP fields on PE(x))."""
+
+
+# Plane order and the point coordinates (grid x, grid y) each plane is sampled at.
+PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (1, 2), (2, 0))  # xy, yz, zx (reference order)
+
+
+class CNNTriplaneBackbone(FieldBackbone):
+    """Three CNN-generated axis-aligned feature planes + a 2-layer refinement MLP (B.2).
+
+    Each point is projected onto the xy, yz and zx planes, bilinearly sampled (``grid_sample``,
+    ``align_corners=False``, zero padding, points assumed in [-1, 1]^3 as the reference: no
+    normalisation), the three features are concatenated (3·C) and refined by
+    Linear(3C, 3C) → ReLU → Linear(3C, 3C). feature_dim = 3·``plane_channels`` (B.2: 48).
+
+    Args:
+        plane_channels, noise_channels, noise_res, channels, n_up_blocks, resnets_per_block,
+        norm_groups, ref_extra_mid_resnet: passed to each ``TriplaneGenerator`` (B.2 defaults:
+            16, 8, 20, 32, 4, 2, 32, False -> three 16×160×160 planes).
+        refine: apply the 2-layer refinement MLP (B.2: "a tiny 2-layer MLP with 48 neurons").
+        seed: noise seed; plane p uses ``seed + p``.
+    """
+
+    def __init__(
+        self,
+        plane_channels: int = 16,
+        noise_channels: int = 8,
+        noise_res: int = 20,
+        channels: int = 32,
+        n_up_blocks: int = 4,
+        resnets_per_block: int = 2,
+        norm_groups: int = 32,
+        ref_extra_mid_resnet: bool = False,
+        refine: bool = True,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        self.plane_channels = plane_channels
+        self.generators = nn.ModuleList(
+            TriplaneGenerator(
+                noise_channels=noise_channels,
+                noise_res=noise_res,
+                channels=channels,
+                out_channels=plane_channels,
+                n_up_blocks=n_up_blocks,
+                resnets_per_block=resnets_per_block,
+                norm_groups=norm_groups,
+                ref_extra_mid_resnet=ref_extra_mid_resnet,
+                seed=seed + p,
+            )
+            for p in range(3)
+        )
+        f = 3 * plane_channels
+        self.refine = (
+            nn.Sequential(nn.Linear(f, f), nn.ReLU(), nn.Linear(f, f)) if refine else nn.Identity()
+        )
+
+    @property
+    def feature_dim(self) -> int:
+        return 3 * self.plane_channels
+
+    @property
+    def resolution(self) -> int:
+        """Spatial resolution R of each plane."""
+        return self.generators[0].resolution
+
+    def prepare(self) -> Tensor:
+        """The three planes stacked: [3, C, R, R] (xy, yz, zx)."""
+        return torch.cat([g() for g in self.generators], dim=0)
+
+    def sample(self, state: Tensor, points: Tensor) -> Tensor:
+        """Refined tri-plane features [N, 3C] of ``points`` [N, 3] from planes ``state`` [3, C, R, R]."""
+        planes = state.to(points.dtype)
+        # grid[p, 0, n] = (u, v): u indexes the plane's width, v its height.
+        grid = torch.stack([points[:, list(ax)] for ax in PLANE_AXES], dim=0)[:, None]  # [3, 1, N, 2]
+        feats = F.grid_sample(planes, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        feats = feats[:, :, 0].permute(2, 0, 1).reshape(points.shape[0], -1)  # [N, 3·C] (xy, yz, zx)
+        return self.refine(feats)
