@@ -1,0 +1,106 @@
+"""Tables (and charts) from sweep results: ``python -m src.tables SWEEP_DIR [SWEEP_DIR...]``.
+
+Reads ``SWEEP_DIR/multirun.yaml`` (its ``report:`` block) and every ``SWEEP_DIR/**/metrics.json``,
+prints the tables, and optionally writes ``OUT/table.{md,tex,csv}`` and ``chart.{png,svg}``.
+Conventions and the record contract: :mod:`src.reporting`.
+
+Exit codes: 0 success; 1 the chart could not be drawn; 2 bad usage or nothing to tabulate (a sweep
+directory missing, without any metrics.json, or with no readable record).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from src.reporting import load, make_tables, resolve_spec
+from src.reporting.aggregate import build_report
+from src.reporting.collect import find_metrics_files
+from src.reporting.render import FORMATS, render
+
+__all__ = ["main", "make_tables"]
+
+
+def _csv_list(text: str) -> tuple[str, ...]:
+    return tuple(part.strip() for part in text.split(",") if part.strip())
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """Command-line arguments (see ``--help``)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m src.tables",
+        description="Aggregate metrics.json files of Hydra sweeps into paper-style tables.",
+    )
+    parser.add_argument("sweep_dirs", nargs="+", type=Path, metavar="SWEEP_DIR")
+    parser.add_argument("--format", choices=FORMATS, default="md", help="output format (default: md)")
+    parser.add_argument("--out", type=Path, help="also write OUT/table.<format> (and the chart here)")
+    parser.add_argument("--rows", type=_csv_list, help="row keys, comma-separated dotted paths")
+    parser.add_argument("--cols", type=_csv_list, help="column keys; '--cols=' → one column per metric")
+    parser.add_argument("--metrics", type=_csv_list, help="metrics, comma-separated (one table each)")
+    parser.add_argument(
+        "--quoted",
+        nargs="?",
+        const="auto",
+        metavar="TAB",
+        help="append the paper's rows for systems not run: a table (C.1 … C.6) or, bare, chosen by dataset",
+    )
+    parser.add_argument("--chart", action="store_true", help="write speed × accuracy chart.png / chart.svg")
+    return parser.parse_args(argv)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI; returns the exit code."""
+    args = parse_args(argv)
+    for sweep_dir in args.sweep_dirs:
+        if not sweep_dir.is_dir():
+            print(f"error: {sweep_dir} is not a directory", file=sys.stderr)
+            return 2
+        if not find_metrics_files(sweep_dir):
+            print(f"error: no metrics.json under {sweep_dir} (empty or unfinished sweep?)", file=sys.stderr)
+            return 2
+
+    collection = load(args.sweep_dirs)
+    for problem in collection.problems:
+        print(f"skipped {problem}", file=sys.stderr)
+    if not collection.records:
+        print(f"error: none of the {collection.n_files} metrics.json files could be read", file=sys.stderr)
+        return 2
+    try:
+        spec = resolve_spec(None, collection).with_overrides(
+            rows=args.rows, cols=args.cols, metrics=args.metrics, quoted=args.quoted
+        )
+    except ValueError as exc:
+        print(f"error: bad report block: {exc}", file=sys.stderr)
+        return 2
+
+    text = render(build_report(collection.records, spec, collection.problems), args.format)
+    print(text, end="")
+    if args.out is not None:
+        path = args.out / f"table.{args.format}"
+        _write_atomic(path, text)
+        print(f"wrote {path}", file=sys.stderr)
+    if args.chart:
+        from src.reporting.chart import make_chart  # matplotlib is only imported when charting
+
+        try:
+            paths = make_chart(collection.records, spec, args.out or args.sweep_dirs[0])
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        for path in paths:
+            print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
