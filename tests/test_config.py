@@ -29,7 +29,7 @@ def options(group: str) -> list[str]:
 
 
 @pytest.mark.parametrize("group", ["dataset", "init", "model", "rasterizer", "loss", "optim", "strategy",
-                                   "trainer", "eval"])
+                                   "trainer", "eval", "field"])
 def test_every_option_of_every_group_instantiates(group, tmp_path):
     from tests.scenes import write_blender_scene
 

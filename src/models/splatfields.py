@@ -1,0 +1,130 @@
+"""SplatFields: splat attributes predicted by neural fields at canonical query points (Sec. 4, B.2).
+
+The per-splat state is only a set of canonical centres and their kNN base scales (buffers, not
+trained); every rendered attribute comes from :class:`src.fields.network.SplatFieldNetwork`.
+Conventions: normalised scene coordinates in [-1, 1]^3, quaternions (w, x, y, z), linear scales.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from src.core.cameras import Camera
+from src.core.splats import Splats
+from src.fields.network import SplatFieldNetwork
+from src.models.base import SplatModel
+from src.models.knn import knn_base_scale
+
+
+class SplatFieldsModel(SplatModel):
+    """Neural splat fields over canonical points.
+
+    Args:
+        init: [N, 3] canonical centres (visual hull samples or a 3DGS run's centres).
+        network: the field network (backbone + heads + flow), built from ``conf/model/*.yaml``.
+        method: label in run records.
+        clone_mode: how densification clones a query point. ``jitter`` (default, the paper's intent of
+            adding detail): the clone is moved by N(0, clone_jitter x its base scale), so it is a new
+            query point; ``exact_quirk``: an exact copy, as the reference code does, which through a
+            deterministic field renders the same splat twice (doubled opacity).
+        clone_jitter: clone displacement in units of the base scale (``jitter`` mode).
+        max_splats: never hold more canonical points than this (initial points are subsampled).
+    """
+
+    def __init__(self, init: Tensor, network: SplatFieldNetwork, method: str = "splatfields3d",
+                 clone_mode: str = "jitter", clone_jitter: float = 0.5, max_splats: int | None = None,
+                 **_: object) -> None:
+        super().__init__()
+        if clone_mode not in ("jitter", "exact_quirk"):
+            raise ValueError(f"model.clone_mode={clone_mode!r}: expected 'jitter' or 'exact_quirk'")
+        if max_splats is not None and init.shape[0] > max_splats:
+            init = init[torch.randperm(init.shape[0], generator=torch.Generator().manual_seed(0))[:max_splats]]
+        self.method = method
+        self.network = network
+        self.clone_mode = clone_mode
+        self.clone_jitter = clone_jitter
+        self.register_buffer("canonical", init.float().clone())  # [N, 3]
+        self.register_buffer("base_scale", knn_base_scale(init.float())[:, None].repeat(1, 3))  # [N, 3]
+        self._last: dict[str, Tensor] = {}
+
+    @property
+    def n_splats(self) -> int:
+        return self.canonical.shape[0]
+
+    def param_groups(self) -> list[dict]:
+        return [{"name": "network", "params": [p for p in self.network.parameters() if p.requires_grad]}]
+
+    def _predict(self, camera: Camera, state) -> dict[str, Tensor]:
+        return self.network(self.canonical, self.base_scale, frame_id=camera.frame_id, time=camera.time,
+                            camera_center=camera.center.to(self.canonical), state=state)
+
+    def _to_splats(self, out: dict[str, Tensor]) -> Splats:
+        self._last = {"opacities": out["opacities"].detach(), "scales": out["scales"].detach()}
+        return Splats(means=out["means"], scales=out["scales"], quats=out["quats"], opacities=out["opacities"],
+                      colors=out["colors"])
+
+    def splats(self, camera: Camera) -> Splats:
+        return self._to_splats(self._predict(camera, self.network.prepare()))
+
+    def splats_for(self, cameras: list[Camera]) -> list[Splats]:
+        """Splats for several cameras; the tri-plane CNN runs once for all of them."""
+        state = self.network.prepare()
+        return [self._to_splats(self._predict(c, state)) for c in cameras]
+
+    @torch.no_grad()
+    def bake(self, time: float = 0.0, frame_id: int = 0) -> Splats:
+        """Evaluate the fields once and return a plain splat set (exact for view-independent colour)."""
+        if getattr(self.network, "view_dependent", False):
+            raise NotImplementedError("view-dependent colour cannot be baked into RGB splats exactly")
+        cam = Camera(torch.eye(4), 1.0, 1.0, 0.0, 0.0, 1, 1, time=time, frame_id=frame_id)
+        cam.world_to_cam[2, 3] = 10.0  # any camera: colour does not depend on it
+        out = self._predict(cam.to(device=self.canonical.device), self.network.prepare())
+        return Splats(means=out["means"].clone(), scales=out["scales"].clone(),
+                      quats=torch.nn.functional.normalize(out["quats"], dim=-1), opacities=out["opacities"].clone(),
+                      colors=out["colors"].clone())
+
+    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
+        """Load a checkpoint whose number of canonical points may differ (resizes the buffers first)."""
+        for name in ("canonical", "base_scale"):
+            if name in state_dict and state_dict[name].shape != getattr(self, name).shape:
+                setattr(self, name, torch.empty_like(state_dict[name]))
+        return super().load_state_dict(state_dict, strict=strict, assign=assign)
+
+    # -- densification: add / remove / move query points -----------------------------------
+    def canonical_means(self) -> Tensor:
+        return self.canonical
+
+    def max_scale(self) -> Tensor:
+        s = self._last.get("scales")
+        if s is None or s.shape[0] != self.n_splats:
+            s = self.base_scale
+        return s.max(dim=1).values
+
+    def opacity_values(self) -> Tensor | None:
+        o = self._last.get("opacities")
+        return o if o is not None and o.shape[0] == self.n_splats else None
+
+    def densify(self, optimizer, clone: Tensor, split: Tensor, n_split: int, generator: torch.Generator) -> None:
+        """Clone (jittered, or exact in ``exact_quirk`` mode) and split canonical points (base scale / 1.6)."""
+        x, s = self.canonical, self.base_scale
+        new_x = [x[~split]]
+        new_s = [s[~split]]
+        if clone.any():
+            cx, cs = x[clone], s[clone]
+            if self.clone_mode == "jitter":
+                cx = cx + torch.randn(cx.shape, generator=generator).to(cx) * cs * self.clone_jitter
+            new_x.append(cx)
+            new_s.append(cs)
+        if split.any():
+            px, ps = x[split].repeat(n_split, 1), s[split].repeat(n_split, 1)
+            new_x.append(px + torch.randn(px.shape, generator=generator).to(px) * ps)
+            new_s.append(ps / (0.8 * n_split))
+        self.canonical = torch.cat(new_x)
+        self.base_scale = torch.cat(new_s)
+        self._last = {}
+
+    def prune(self, optimizer, mask: Tensor) -> None:
+        self.canonical = self.canonical[~mask]
+        self.base_scale = self.base_scale[~mask]
+        self._last = {}
