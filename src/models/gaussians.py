@@ -66,12 +66,16 @@ class GaussianSplatModel(SplatModel):
         if self.sh_degree_interval > 0:
             self.active_sh_degree = min(self.max_sh_degree, iteration // self.sh_degree_interval)
 
-    def colors(self, camera: Camera | None) -> Tensor:
-        """[N, 3] colours seen from ``camera`` (SH at the active degree; DC only if camera is None)."""
+    def colors(self, camera: Camera | None, means: Tensor | None = None) -> Tensor:
+        """[N, 3] colours seen from ``camera`` (SH at the active degree; DC only if camera is None).
+
+        ``means`` (default: the splat means) are the positions the view directions are taken from.
+        """
         coeffs = torch.cat([self.params["sh0"], self.params["shN"]], dim=1)
         if camera is None or self.active_sh_degree == 0:
             return torch.clamp_min(eval_sh(0, coeffs, coeffs[:, 0]) + 0.5, 0.0)
-        dirs = self.params["means"] - camera.center.to(self.params["means"])
+        means = self.params["means"] if means is None else means
+        dirs = means - camera.center.to(means)
         dirs = F.normalize(dirs, dim=-1)
         return torch.clamp_min(eval_sh(self.active_sh_degree, coeffs, dirs) + 0.5, 0.0)
 

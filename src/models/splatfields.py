@@ -7,6 +7,9 @@ Conventions: normalised scene coordinates in [-1, 1]^3, quaternions (w, x, y, z)
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Callable
+
 import torch
 from torch import Tensor
 
@@ -22,7 +25,10 @@ class SplatFieldsModel(SplatModel):
 
     Args:
         init: [N, 3] canonical centres (visual hull samples or a 3DGS run's centres).
-        network: the field network (backbone + heads + flow), built from ``conf/model/*.yaml``.
+        network: the field network, or a partial of it (``_partial_: true`` in the config) that is
+            completed here with the scene's ``n_frames`` and the ``flow``.
+        flow: flow model (or a partial taking ``n_frames``/``hidden_dim``) for dynamic scenes; None = static.
+        scene: the loaded scene (supplies ``n_frames``); None means a static scene.
         method: label in run records.
         clone_mode: how densification clones a query point. ``jitter`` (default, the paper's intent of
             adding detail): the clone is moved by N(0, clone_jitter x its base scale), so it is a new
@@ -30,12 +36,30 @@ class SplatFieldsModel(SplatModel):
             deterministic field renders the same splat twice (doubled opacity).
         clone_jitter: clone displacement in units of the base scale (``jitter`` mode).
         max_splats: never hold more canonical points than this (initial points are subsampled).
+        time_noise: annealed time jitter of Deformable-3DGS's smooth training (monocular data): the
+            training time is t + N(0, 1) * time_noise * (1 / n_frames) * max(0, 1 - it / time_noise_until).
+            0 disables it.
+        time_noise_until: iteration at which the jitter reaches zero.
     """
 
-    def __init__(self, init: Tensor, network: SplatFieldNetwork, method: str = "splatfields3d",
+    def __init__(self, init: Tensor, network: SplatFieldNetwork | Callable[..., SplatFieldNetwork],
+                 flow: object | None = None, scene: object | None = None, method: str = "splatfields3d",
                  clone_mode: str = "jitter", clone_jitter: float = 0.5, max_splats: int | None = None,
-                 **_: object) -> None:
+                 time_noise: float = 0.0, time_noise_until: int = 20_000, **_: object) -> None:
         super().__init__()
+        n_frames = int(getattr(scene, "n_frames", 1) or 1)
+        if not isinstance(network, torch.nn.Module):
+            kwargs = {"n_frames": n_frames}
+            if flow is not None:
+                if not isinstance(flow, torch.nn.Module):
+                    fkw = {"n_frames": n_frames} if "n_frames" in inspect.signature(flow).parameters else {}
+                    flow = flow(**fkw)
+                kwargs["flow"] = flow
+            network = network(**kwargs)
+        self.n_frames = n_frames
+        self.time_noise = time_noise
+        self.time_noise_until = time_noise_until
+        self.iteration = 0
         if clone_mode not in ("jitter", "exact_quirk"):
             raise ValueError(f"model.clone_mode={clone_mode!r}: expected 'jitter' or 'exact_quirk'")
         if max_splats is not None and init.shape[0] > max_splats:
@@ -55,8 +79,19 @@ class SplatFieldsModel(SplatModel):
     def param_groups(self) -> list[dict]:
         return [{"name": "network", "params": [p for p in self.network.parameters() if p.requires_grad]}]
 
+    def on_step(self, iteration: int) -> None:
+        self.iteration = iteration
+
+    def _time(self, camera: Camera) -> float:
+        """The time fed to the fields: the camera's, jittered while training if ``time_noise`` > 0."""
+        t = camera.time
+        if self.training and self.time_noise > 0 and self.n_frames > 1:
+            decay = max(0.0, 1.0 - self.iteration / max(self.time_noise_until, 1))
+            t = t + float(torch.randn(())) * self.time_noise * decay / self.n_frames
+        return t
+
     def _predict(self, camera: Camera, state) -> dict[str, Tensor]:
-        return self.network(self.canonical, self.base_scale, frame_id=camera.frame_id, time=camera.time,
+        return self.network(self.canonical, self.base_scale, frame_id=camera.frame_id, time=self._time(camera),
                             camera_center=camera.center.to(self.canonical), state=state)
 
     def _to_splats(self, out: dict[str, Tensor]) -> Splats:
@@ -68,9 +103,19 @@ class SplatFieldsModel(SplatModel):
         return self._to_splats(self._predict(camera, self.network.prepare()))
 
     def splats_for(self, cameras: list[Camera]) -> list[Splats]:
-        """Splats for several cameras; the tri-plane CNN runs once for all of them."""
+        """Splats for several cameras: the tri-plane CNN runs once, and with view-independent colour the
+        heads run once per distinct time (the views of one training step share it)."""
         state = self.network.prepare()
-        return [self._to_splats(self._predict(c, state)) for c in cameras]
+        if getattr(self.network, "view_dependent", False):
+            return [self._to_splats(self._predict(c, state)) for c in cameras]
+        cache: dict[tuple[int, float], Splats] = {}
+        out = []
+        for c in cameras:
+            key = (c.frame_id, c.time)
+            if key not in cache:
+                cache[key] = self._to_splats(self._predict(c, state))
+            out.append(cache[key])
+        return out
 
     @torch.no_grad()
     def bake(self, time: float = 0.0, frame_id: int = 0) -> Splats:
