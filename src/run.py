@@ -90,6 +90,7 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         evaluator = build(cfg.eval)
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
         per_view = ev.pop("per_view_test")
+        per_frame = ev.pop("per_frame", None)
         record["metrics"] = {
             "psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
             "n_params": model.n_params(), "train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
@@ -97,6 +98,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
             **{f"iter_{k}": v for k, v in train_stats["timing"].items()},
         }
         record["per_view"] = per_view
+        if per_frame is not None:
+            record["per_frame"] = per_frame
         record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
         write_artifacts(model, run_dir)
         record["status"] = "ok"
