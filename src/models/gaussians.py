@@ -142,6 +142,42 @@ class GaussianSplatModel(SplatModel):
             keep[: split.shape[0]][split] = False
             self._edit(optimizer, keep, None)
 
+    def _mcmc_opacity(self, targets: Tensor) -> Tensor:
+        """Logit opacities shared by a target and its k copies: 1 - (1 - o)^(1 / (k + 1)) (3DGS-MCMC)."""
+        counts = torch.bincount(targets, minlength=self.n_splats)[targets].to(self.params["opacities"])
+        o = torch.sigmoid(self.params["opacities"].data[targets])
+        o_new = (1 - (1 - o).pow(1 / (counts + 1))).clamp(1e-4, 1 - 1e-4)
+        return torch.log(o_new) - torch.log1p(-o_new)
+
+    def _zero_moments(self, optimizer: SplatOptimizer | None, rows: Tensor) -> None:
+        if optimizer is None:
+            return
+        for p in self.params.values():
+            st = optimizer.optimizer.state.get(p)
+            if st:
+                st["exp_avg"][rows] = 0
+                st["exp_avg_sq"][rows] = 0
+
+    @torch.no_grad()
+    def relocate(self, optimizer: SplatOptimizer | None, dead: Tensor, targets: Tensor,
+                 generator: torch.Generator) -> None:
+        """Copy the targets' parameters onto the dead splats; targets and copies share the opacity."""
+        new_logit = self._mcmc_opacity(targets)
+        for p in self.params.values():
+            p.data[dead] = p.data[targets]
+        self.params["opacities"].data[targets] = new_logit
+        self.params["opacities"].data[dead] = new_logit
+        self._zero_moments(optimizer, torch.cat([dead, targets]))
+
+    @torch.no_grad()
+    def add_from(self, optimizer: SplatOptimizer | None, targets: Tensor, generator: torch.Generator) -> None:
+        """Append copies of the targets; targets and copies share the MCMC-corrected opacity."""
+        new_logit = self._mcmc_opacity(targets)
+        self.params["opacities"].data[targets] = new_logit
+        new = {k: v.data[targets].clone() for k, v in self.params.items()}
+        self._edit(optimizer, None, new)
+        self._zero_moments(optimizer, targets)
+
     def prune(self, optimizer: SplatOptimizer | None, mask: Tensor) -> None:
         self._edit(optimizer, ~mask, None)
 

@@ -169,6 +169,27 @@ class SplatFieldsModel(SplatModel):
         self.base_scale = torch.cat(new_s)
         self._last = {}
 
+    def _near(self, targets: Tensor, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+        """New query points near ``targets``: jittered by ``clone_jitter`` x base scale (never duplicates)."""
+        x, s = self.canonical[targets], self.base_scale[targets]
+        jitter = max(self.clone_jitter, 1e-3)
+        return x + torch.randn(x.shape, generator=generator).to(x) * s * jitter, s.clone()
+
+    @torch.no_grad()
+    def relocate(self, optimizer, dead: Tensor, targets: Tensor, generator: torch.Generator) -> None:
+        """Move dead query points next to live ones (the field decides their attributes)."""
+        x, s = self._near(targets, generator)
+        self.canonical[dead] = x
+        self.base_scale[dead] = s
+        self._last = {}
+
+    @torch.no_grad()
+    def add_from(self, optimizer, targets: Tensor, generator: torch.Generator) -> None:
+        x, s = self._near(targets, generator)
+        self.canonical = torch.cat([self.canonical, x])
+        self.base_scale = torch.cat([self.base_scale, s])
+        self._last = {}
+
     def prune(self, optimizer, mask: Tensor) -> None:
         self.canonical = self.canonical[~mask]
         self.base_scale = self.base_scale[~mask]

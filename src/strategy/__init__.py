@@ -6,6 +6,7 @@ canonical query points of SplatFields. ``max_splats`` is a hard cap honoured by 
 """
 
 from src.strategy.base import NoDensification, Strategy
+from src.strategy.budget import BudgetStrategy
 from src.strategy.default import ADCStrategy
 
-__all__ = ["ADCStrategy", "NoDensification", "Strategy"]
+__all__ = ["ADCStrategy", "BudgetStrategy", "NoDensification", "Strategy"]

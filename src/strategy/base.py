@@ -21,6 +21,9 @@ class Strategy:
         self.max_splats = max_splats
         self.extent = extent
 
+    def bind(self, scene, rasterizer) -> None:
+        """Called once before training with the scene and the rasterizer."""
+
     def after_backward(self, model: SplatModel, renders: list[RenderOutput], iteration: int) -> None:
         """Accumulate statistics from the gradients of this iteration (before the optimiser step)."""
 

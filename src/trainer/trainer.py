@@ -95,6 +95,7 @@ class Trainer:
         rng = random.Random(seed)
         guard = DivergenceGuard(**self.guard_cfg)
         optimizer = make_optimizer(model)
+        strategy.bind(scene, rasterizer)
         start = 0
         prev_train_s = 0.0
         if self.resume and ckpt_path.is_file():
@@ -156,6 +157,9 @@ class Trainer:
                 n_timed += 1
             if it % self.log_every == 0 or it == self.iterations - 1:
                 bar.set_postfix(loss=f"{float(terms['total'].detach()):.4f}", psnr=f"{psnr_val:.2f}", n=model.n_splats)
+                if not self.progress:
+                    log.info("iter %d/%d loss %.4f psnr %.2f splats %d", it, self.iterations,
+                             float(terms["total"].detach()), psnr_val, model.n_splats)
                 if writer is not None:
                     for k, v in terms.items():
                         writer.add_scalar(f"loss/{k}", float(v.detach()), it)
