@@ -85,6 +85,44 @@ class Trainer:
         }, buf)
         atomic_write_bytes(path, buf.getvalue())
 
+    # -- one optimisation step ------------------------------------------------------------------
+    @staticmethod
+    def train_step(model: SplatModel, views: list[View], rasterizer: Rasterizer, loss_fn: Callable,
+                   optimizer: SplatOptimizer, strategy: Strategy, guard: DivergenceGuard, it: int,
+                   generator: torch.Generator, background: torch.Tensor) -> dict:
+        """Render ``views``, back-propagate the loss, step the optimiser and the strategy.
+
+        Returns dict(terms, renders, dens (strategy stats), psnr (mean over views), lrs, timing) where
+        timing holds seconds spent in field (splat prediction), rasterizer (forward), backward and
+        optimizer (optimiser + strategy).
+        """
+        t0 = time.perf_counter()
+        model.on_step(it)
+        lrs = optimizer.set_step(it)
+        cams = [v.camera for v in views]
+        splats = model.splats_for(cams)
+        t1 = time.perf_counter()
+        renders = [rasterizer.render(s, c, background) for s, c in zip(splats, cams, strict=True)]
+        for r in renders:
+            if r.means2d.requires_grad:
+                r.means2d.retain_grad()
+        t2 = time.perf_counter()
+        terms = loss_fn(renders, views, splats, iteration=it)
+        guard.check_loss(terms["total"], it)
+        terms["total"].backward()
+        t3 = time.perf_counter()
+        guard.check_gradients(model.parameters(), it)
+        strategy.after_backward(model, renders, it)
+        optimizer.step()
+        optimizer.zero_grad()
+        dens = strategy.after_step(model, optimizer, it, generator)
+        guard.check_splats(model.n_splats, it)
+        t4 = time.perf_counter()
+        psnr = sum(_mse_psnr(r.color, v.image) for r, v in zip(renders, views, strict=True)) / len(views)
+        guard.check_psnr(psnr, it)
+        timing = {"field": t1 - t0, "rasterizer": t2 - t1, "backward": t3 - t2, "optimizer": t4 - t3}
+        return {"terms": terms, "renders": renders, "dens": dens, "psnr": psnr, "lrs": lrs, "timing": timing}
+
     # -- main loop ---------------------------------------------------------------------------
     def fit(self, model: SplatModel, scene: Scene, rasterizer: Rasterizer, loss_fn: Callable,
             make_optimizer: Callable[[SplatModel], SplatOptimizer], strategy: Strategy, run_dir: Path,
@@ -124,36 +162,14 @@ class Trainer:
                    desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
         psnr_val = math.nan
         for it in bar:
-            t0 = time.perf_counter()
-            model.on_step(it)
-            lrs = optimizer.set_step(it)
             views = self.sample_views(scene, rng)
-            cams = [v.camera for v in views]
-            splats = model.splats_for(cams)
-            t1 = time.perf_counter()
-            renders = [rasterizer.render(s, c, scene.background) for s, c in zip(splats, cams, strict=True)]
-            for r in renders:
-                if r.means2d.requires_grad:
-                    r.means2d.retain_grad()
-            t2 = time.perf_counter()
-            terms = loss_fn(renders, views, splats, iteration=it)
-            guard.check_loss(terms["total"], it)
-            terms["total"].backward()
-            t3 = time.perf_counter()
-            guard.check_gradients(model.parameters(), it)
-            strategy.after_backward(model, renders, it)
-            optimizer.step()
-            optimizer.zero_grad()
-            dens = strategy.after_step(model, optimizer, it, generator)
-            guard.check_splats(model.n_splats, it)
-            t4 = time.perf_counter()
-            psnr_val = sum(_mse_psnr(r.color, v.image) for r, v in zip(renders, views, strict=True)) / len(views)
-            guard.check_psnr(psnr_val, it)
+            step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
+                                   scene.background)
+            terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
+            psnr_val = step["psnr"]
             if it > start:  # the first iteration includes one-off costs (JIT build, caches)
-                timing["field"] += t1 - t0
-                timing["rasterizer"] += t2 - t1
-                timing["backward"] += t3 - t2
-                timing["optimizer"] += t4 - t3
+                for k, v in step["timing"].items():
+                    timing[k] += v
                 n_timed += 1
             if it % self.log_every == 0 or it == self.iterations - 1:
                 bar.set_postfix(loss=f"{float(terms['total'].detach()):.4f}", psnr=f"{psnr_val:.2f}", n=model.n_splats)
