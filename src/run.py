@@ -53,19 +53,38 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     metrics_path = run_dir / "metrics.json"
     previous = read_json(metrics_path)
+    # Resume safety (sweeps/README.md, "Resume"): a re-used run dir must hold the SAME job. A sweep
+    # re-run with changed parameters renumbers its jobs, and skipping an "ok" record or resuming a
+    # checkpoint of another configuration would silently attribute results to the wrong config.
+    if previous and ctx["output_dir"] is not None and previous.get("overrides") is not None:
+        before, now = _identity_overrides(previous["overrides"]), _identity_overrides(ctx["overrides"])
+        if before != now:
+            raise RuntimeError(
+                f"{run_dir} holds another run (overrides {before}); this job has {now}. Re-use a run/sweep "
+                "dir only with the same command; to extend a sweep use a new hydra.sweep.dir and pass both "
+                "directories to src.tables.")
     if cfg.get("skip_if_done", True) and previous and previous.get("status") == "ok":
         log.info("%s already says status ok: skipping (set skip_if_done=false to re-run)", metrics_path)
         return previous
+    # A run killed (SIGKILL) inside an atomic write leaves its temporary file (.NAME.XXXX.tmp, see
+    # src/utils/record.py); the run dir belongs to this job alone, so drop such leftovers.
+    for stale in run_dir.glob(".*.tmp"):
+        stale.unlink(missing_ok=True)
     device = resolve_device(cfg.device)
     record: dict = {
         "status": "running", "error": None, "reason": None,
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
         "choices": ctx["choices"], "overrides": ctx["overrides"],
         "keys": {"scene": None, "n_views": cfg.dataset.get("n_views"), "seed": cfg.seed,
-                 "iterations": cfg.trainer.iterations, **OmegaConf.to_container(cfg.get("extra_keys", {}))},
+                 "iterations": cfg.trainer.iterations,
+                 # resolved: sweeps copy swept values into the keys, e.g. ${schedule.max_splats}
+                 **OmegaConf.to_container(cfg.get("extra_keys", {}), resolve=True)},
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
         "env": env_info(device), "run_dir": str(run_dir),
     }
+    # Written now with status "running" (never "ok" before the end): a killed run leaves this record,
+    # so tables list it as not finished and a re-run can check it is the same job (above).
+    write_json(metrics_path, record)
     t0 = time.perf_counter()
     try:
         generator = seed_everything(cfg.seed)
@@ -74,19 +93,11 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         scene = dataset.load().to(device)
         record["keys"]["scene"] = scene.name
         record["views"] = scene.view_ids
-        rasterizer = build(cfg.rasterizer)
-        init_points = build(cfg.init)(scene, generator)
-        model = build(cfg.model, init=init_points.to(device), scene=scene).to(device)
-        loss_fn = build(cfg.loss)
-        strategy = build(cfg.strategy, extent=scene.extent)
-        optim_factory = build(cfg.optim)
-
-        def make_optimizer(m):
-            return optim_factory(groups=m.param_groups(), extent=scene.extent)
-
-        trainer = build(cfg.trainer)
-        train_stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir,
-                                  generator, seed=cfg.seed)
+        capacity = build(cfg.capacity) if cfg.get("capacity") else None
+        if capacity is not None and capacity.enabled:
+            cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
+            record["keys"].update(record["capacity"]["chosen"])
+        model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
         evaluator = build(cfg.eval)
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
         per_view = ev.pop("per_view_test")
@@ -116,6 +127,35 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         record["wall_s"] = time.perf_counter() - t0
         write_json(metrics_path, record)
     return record
+
+
+def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, generator: torch.Generator):
+    """Build the model, rasterizer, loss, strategy and optimiser from ``cfg`` and train on ``scene``.
+
+    Returns (model, rasterizer, training statistics). Used for the main run and for capacity searches.
+    """
+    rasterizer = build(cfg.rasterizer)
+    init_points = build(cfg.init)(scene, generator)
+    model = build(cfg.model, init=init_points.to(device), scene=scene).to(device)
+    loss_fn = build(cfg.loss)
+    strategy = build(cfg.strategy, extent=scene.extent)
+    optim_factory = build(cfg.optim)
+
+    def make_optimizer(m):
+        return optim_factory(groups=m.param_groups(), extent=scene.extent)
+
+    trainer = build(cfg.trainer)
+    stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir, generator, seed=cfg.seed)
+    return model, rasterizer, stats
+
+
+# Overrides that do not change a run's results; a re-run may add or change them (resume check above).
+_NEUTRAL_OVERRIDES = ("skip_if_done", "threads", "trainer.progress", "trainer.log_every")
+
+
+def _identity_overrides(overrides: list[str]) -> list[str]:
+    """The overrides that identify a job: ``overrides`` without the :data:`_NEUTRAL_OVERRIDES` keys."""
+    return [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in _NEUTRAL_OVERRIDES]
 
 
 def write_artifacts(model, run_dir: Path) -> None:

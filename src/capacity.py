@@ -1,0 +1,125 @@
+"""Capacity per scene: choose the splat budget and field width from the scene, not from a table.
+
+The search never looks at test views. It holds out some of the *training* views, trains short runs of
+growing capacity on the rest, scores each on the held-out training views, and stops growing a
+dimension when the held-out PSNR improves by less than ``min_gain_db``: "model no more than a scene
+needs". The main run then trains on all training views with the chosen sizes, which are recorded in
+``metrics.json`` (``capacity`` block, and ``keys.max_splats`` / ``keys.width``).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from src.data.base import Scene
+from src.eval.evaluator import Evaluator
+
+log = logging.getLogger(__name__)
+
+# field widths that follow the main width w: the big heads use w, the small ones w / 2 (B.2: 128 / 64)
+WIDE_HEADS = ("deform_width", "color_width", "flow_width")
+NARROW_HEADS = ("scale_width", "opacity_width", "rotation_width")
+
+
+class FixedCapacity:
+    """No search: the configured sizes are used as they are."""
+
+    enabled = False
+
+
+class CapacitySearch:
+    """Greedy search over splat budgets, then field widths, on held-out training views.
+
+    Args:
+        budgets: candidate splat budgets (``schedule.max_splats`` and the initial point count), ascending.
+        widths: candidate widths of the large heads (small heads get half), ascending; ignored for
+            models without fields.
+        holdout_every: hold out every k-th training view (at least one) for validation.
+        search_iterations: training iterations of each search run.
+        min_gain_db: stop growing when the held-out PSNR improves by less than this.
+    """
+
+    enabled = True
+
+    def __init__(self, budgets: list[int] = (2500, 5000, 10000, 20000), widths: list[int] = (32, 64, 128),
+                 holdout_every: int = 4, search_iterations: int = 600, min_gain_db: float = 0.1) -> None:
+        self.budgets = sorted(budgets)
+        self.widths = sorted(widths)
+        self.holdout_every = holdout_every
+        self.search_iterations = search_iterations
+        self.min_gain_db = min_gain_db
+
+    def split(self, scene: Scene) -> tuple[Scene, Scene]:
+        """(training part, validation part) of the training views; the test views are never used."""
+        val_idx = set(range(len(scene.train) - 1, -1, -self.holdout_every)) if len(scene.train) > 1 else set()
+        if not val_idx:
+            raise ValueError("capacity=auto needs at least 2 training views to hold one out")
+        train = [v for i, v in enumerate(scene.train) if i not in val_idx]
+        val = [v for i, v in enumerate(scene.train) if i in val_idx]
+        return replace(scene, train=train, test=val, val=[]), replace(scene, train=val, test=val, val=[])
+
+    @staticmethod
+    def apply(cfg: DictConfig, budget: int | None, width: int | None) -> DictConfig:
+        """A copy of ``cfg`` with the splat budget and head widths set."""
+        out = copy.deepcopy(cfg)
+        with open_dict(out):
+            if budget is not None:
+                out.schedule.max_splats = int(budget)
+                out.init.n_points = int(budget)
+            net = OmegaConf.select(out, "model.network")
+            if width is not None and net is not None:
+                for k in WIDE_HEADS:
+                    net[k] = int(width)
+                for k in NARROW_HEADS:
+                    net[k] = max(8, int(width) // 2)
+        return out
+
+    def _score(self, cfg: DictConfig, part: Scene, out_dir: Path, device, fit: Callable) -> dict:
+        short = copy.deepcopy(cfg)
+        with open_dict(short):
+            short.trainer.iterations = self.search_iterations
+            short.trainer.progress = False
+            short.trainer.tensorboard = False
+            short.trainer.ckpt_every = 0
+            short.trainer.resume = False
+        gen = torch.Generator().manual_seed(int(cfg.seed))
+        model, rasterizer, stats = fit(short, part, out_dir, device, gen)
+        scored = Evaluator(save_renders=False, train_views=False, moran=False, fps_repeats=0).score_views(
+            model, rasterizer, part.test, part.background, None)
+        return {"val_psnr": scored["psnr"], "n_splats": model.n_splats, "n_params": model.n_params(),
+                "train_s": stats["train_s"]}
+
+    def _grow(self, values, make_cfg, part, out_dir, device, fit, trace, label) -> object:
+        best, best_psnr = values[0], -math.inf
+        for v in values:
+            row = self._score(make_cfg(v), part, out_dir / f"{label}_{v}", device, fit)
+            row[label] = v
+            trace.append(row)
+            log.info("capacity search: %s=%s -> held-out PSNR %.2f dB", label, v, row["val_psnr"])
+            if row["val_psnr"] < best_psnr + self.min_gain_db:
+                break
+            best, best_psnr = v, row["val_psnr"]
+        return best
+
+    def choose(self, cfg: DictConfig, scene: Scene, out_dir: Path, device, fit: Callable) -> tuple[DictConfig, dict]:
+        """Run the search; returns (cfg with the chosen sizes, the record's ``capacity`` block)."""
+        part, val = self.split(scene)
+        trace: list[dict] = []
+        budget = self._grow(self.budgets, lambda b: self.apply(cfg, b, None), part, out_dir, device, fit, trace,
+                            "max_splats")
+        chosen: dict = {"max_splats": int(budget)}
+        if OmegaConf.select(cfg, "model.network") is not None:
+            width = self._grow(self.widths, lambda w: self.apply(cfg, budget, w), part, out_dir, device, fit, trace,
+                               "width")
+            chosen["width"] = int(width)
+        new_cfg = self.apply(cfg, chosen["max_splats"], chosen.get("width"))
+        return new_cfg, {"chosen": chosen, "trace": trace, "holdout_views": [v.image_id for v in val.train],
+                         "min_gain_db": self.min_gain_db}

@@ -1,0 +1,60 @@
+"""Capacity search: held-out training views only, greedy growth with a stopping rule, config edits."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from omegaconf import OmegaConf
+
+from src.capacity import CapacitySearch
+
+
+@dataclass
+class _Cam:
+    frame_id: int = 0
+
+
+@dataclass
+class _View:
+    image_id: int
+    camera: _Cam = field(default_factory=_Cam)
+
+
+@dataclass
+class _Scene:
+    train: list
+    test: list
+    val: list
+    background: torch.Tensor = field(default_factory=lambda: torch.ones(3))
+
+
+def test_split_uses_only_training_views():
+    scene = _Scene(train=[_View(i) for i in range(8)], test=[_View(100 + i) for i in range(5)], val=[])
+    part, val = CapacitySearch(holdout_every=4).split(scene)
+    ids_train = {v.image_id for v in part.train}
+    ids_val = {v.image_id for v in val.train}
+    assert ids_val == {7, 3} and ids_train == set(range(8)) - {7, 3}
+    assert {v.image_id for v in part.test} == ids_val  # scored on held-out TRAINING views, never test views
+
+
+def test_greedy_growth_stops_when_gain_is_small(monkeypatch):
+    search = CapacitySearch(budgets=[1000, 2000, 4000, 8000], widths=[32, 64, 128], min_gain_db=0.1)
+    psnr_by_budget = {1000: 20.0, 2000: 21.0, 4000: 21.05, 8000: 23.0}  # 4000 gains < 0.1 dB: stop at 2000
+    psnr_by_width = {32: 21.0, 64: 21.5, 128: 21.55}
+
+    def fake_score(cfg, part, out_dir, device, fit):
+        w = cfg.model.network.color_width
+        return {"val_psnr": psnr_by_width[w] if "width" in str(out_dir) else psnr_by_budget[cfg.schedule.max_splats]}
+
+    monkeypatch.setattr(search, "_score", fake_score)
+    cfg = OmegaConf.create({"schedule": {"max_splats": 50_000}, "init": {"n_points": 10_000}, "seed": 0,
+                            "model": {"network": {k: 128 for k in ("deform_width", "color_width", "flow_width",
+                                                                    "scale_width", "opacity_width",
+                                                                    "rotation_width")}}})
+    scene = _Scene(train=[_View(i) for i in range(8)], test=[], val=[])
+    new_cfg, block = search.choose(cfg, scene, __import__("pathlib").Path("/tmp/cap_test"), "cpu", None)
+    assert block["chosen"] == {"max_splats": 2000, "width": 64}
+    assert new_cfg.schedule.max_splats == 2000 and new_cfg.init.n_points == 2000
+    assert new_cfg.model.network.color_width == 64 and new_cfg.model.network.scale_width == 32
+    assert [r.get("max_splats") for r in block["trace"][:3]] == [1000, 2000, 4000]
