@@ -1,0 +1,70 @@
+"""Regenerate the project's rendered datasets under data/ (run inside .venv-datagen).
+
+    .venv-datagen/bin/python tools/datagen/render_all.py [--only static/plant ...] [--out data]
+
+Use tools/datagen/generate.sh for the full, one-command regeneration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+import static_scenes  # noqa: E402
+
+JOBS = {f"static/{n}": functools.partial(static_scenes.render_static, n) for n in static_scenes.STATIC_SCENES}
+
+import dynamic_scenes  # noqa: E402
+
+JOBS.update(dynamic_scenes.JOBS)
+JOBS["formats/dtu_neus/trinkets"] = lambda out, limit: static_scenes.render_dtu("trinkets", out, limit)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--out", type=Path, default=HERE.parent.parent / "data")
+    ap.add_argument("--only", nargs="*", default=None, help="job names, e.g. static/plant")
+    ap.add_argument("--limit", type=int, default=None, help="debug: at most this many views per split")
+    ap.add_argument("--list", action="store_true")
+    ap.add_argument("--stats", type=Path, default=None, help="write per-job timings as JSON here")
+    args = ap.parse_args(argv)
+    if args.list:
+        print("\n".join(JOBS))
+        return
+    names = args.only or list(JOBS)
+    stats = []
+    for name in names:
+        t0 = time.time()
+        # render into a staging tree, then swap it in, so readers never see a half-written scene
+        staging = args.out / ".staging"
+        if (staging / name).exists():
+            shutil.rmtree(staging / name)
+        print(f"[datagen] {name} ...", flush=True)
+        st = JOBS[name](staging, args.limit)
+        dst = args.out / name
+        if dst.exists():
+            shutil.rmtree(dst)
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        (staging / name).rename(dst)
+        st["wall_s"] = round(time.time() - t0, 2)
+        st["render_s"] = round(st.get("render_s", 0.0), 2)
+        if st.get("images"):
+            st["s_per_image"] = round(st["render_s"] / st["images"], 3)
+        print(f"[datagen] {name}: {json.dumps(st)}", flush=True)
+        stats.append(st)
+    shutil.rmtree(args.out / ".staging", ignore_errors=True)
+    if args.stats:
+        args.stats.write_text(json.dumps(stats, indent=2) + "\n")
+    return stats
+
+
+if __name__ == "__main__":
+    main()
