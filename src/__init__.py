@@ -11,3 +11,10 @@ Conventions used throughout the package (each sub-package repeats the ones it re
   parameters (log-scales, logit-opacities) and activate them.
 * Time is a float in [0, 1]; ``frame_id`` is the integer index of a frame in its sequence.
 """
+
+import os
+
+# OpenMP threads that wait passively: on shared CPUs, spinning barriers of the compiled rasterizer
+# and torch stall when a partner thread is descheduled (measured 20x slowdowns under load). Must be
+# set before torch loads the OpenMP runtime; an explicit user setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

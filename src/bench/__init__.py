@@ -1,0 +1,1 @@
+"""Benchmarks: ``python -m src.bench <subcommand> ...`` (see ``src/bench/__main__.py``)."""

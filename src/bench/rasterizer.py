@@ -1,0 +1,364 @@
+"""``python -m src.bench rasterizer``: forward+backward timings of the rasterizers on synthetic objects.
+
+For every (image width W, splat count N) it times one full differentiable render (projection,
+rasterization, a loss over colour/alpha/depth, backward to all splat parameters) of ``torch_ref``,
+``cpu`` and, on CUDA machines with gsplat installed, ``gsplat``, with interleaved repetitions in one
+process. It also reports:
+
+* ``contrib_pairs``: (pixel, splat) pairs that actually blend (alpha >= 1/255, before termination),
+  counted by the cpu kernel;
+* ``floor_ms`` = contrib_pairs x 132 FLOP / the fp32 sgemm peak measured in the same run (2048^2
+  matmul): the time any exact rasterizer needs at peak arithmetic throughput (~42 FLOP forward +
+  ~90 backward per blended pair; see docs of the CPU rasterizer study), and each time as a multiple
+  ``x_floor`` of it;
+* ``speedup_vs_ref`` (median torch_ref / median cpu) and ``grad_rel_err``, the worst
+  ||g_cpu - g_ref|| / ||g_ref|| over means, scales, quats, opacities and colours.
+
+torch_ref is skipped where its estimated time (upper-bound pairs x ns/pair, calibrated on its first
+run) exceeds ``--ref-max-s`` or its autograd memory (~100 B per pair) exceeds ``--ref-max-gb``.
+
+Synthetic scene ("a trained object"): a bumpy sphere of diameter ~1 centred at the origin. 90 % of
+the splats lie on its surface (normal jitter 0.01) as flat discs tangent to it: tangent scales
+log-uniform in [0.005, 0.03], normal scale 0.2x; 10 % fill the interior with random orientations.
+Opacities sigmoid(N(2.5, 1.5)) (mostly high: median 0.92), colours U(0, 1). The camera is at
+distance 4 looking at the centre with a 0.69 rad horizontal field of view, square W x W image.
+The loss is sum(color * Rc) + sum(alpha * Ra) + sum(depth * Rd) with fixed random R, backpropagated
+directly (the R are fed as output gradients, so the timing holds no loss arithmetic).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from src.core.cameras import Camera, look_at
+from src.core.splats import Splats
+from src.rasterizer.base import Rasterizer
+from src.rasterizer.projection import TILE, project_splats, tile_rects
+
+FLOPS_PER_PAIR = 132  # fwd ~42 + bwd ~90 FLOP per blended (pixel, splat) pair
+ATTRS = ("means", "scales", "quats", "opacities", "colors")
+FULL_SIZES = [(w, n) for w in (100, 200, 400) for n in (10_000, 50_000, 200_000)]
+QUICK_SIZES = [(100, 10_000)]
+
+
+def _rotmat_to_quat(R: Tensor) -> Tensor:
+    """[N, 3, 3] rotation matrices -> [N, 4] quaternions (w, x, y, z) (Shepperd-style, batched)."""
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = m00 + m11 + m22
+    cands = torch.stack([tr, m00, m11, m22], dim=-1)
+    k = cands.argmax(dim=-1)
+    q = torch.empty(R.shape[0], 4, dtype=R.dtype)
+    # case w largest
+    s = torch.sqrt(torch.clamp(1 + tr, min=1e-12)) * 2
+    qw = torch.stack([0.25 * s, (R[:, 2, 1] - R[:, 1, 2]) / s, (R[:, 0, 2] - R[:, 2, 0]) / s,
+                      (R[:, 1, 0] - R[:, 0, 1]) / s], -1)
+    s = torch.sqrt(torch.clamp(1 + m00 - m11 - m22, min=1e-12)) * 2
+    qx = torch.stack([(R[:, 2, 1] - R[:, 1, 2]) / s, 0.25 * s, (R[:, 0, 1] + R[:, 1, 0]) / s,
+                      (R[:, 0, 2] + R[:, 2, 0]) / s], -1)
+    s = torch.sqrt(torch.clamp(1 + m11 - m00 - m22, min=1e-12)) * 2
+    qy = torch.stack([(R[:, 0, 2] - R[:, 2, 0]) / s, (R[:, 0, 1] + R[:, 1, 0]) / s, 0.25 * s,
+                      (R[:, 1, 2] + R[:, 2, 1]) / s], -1)
+    s = torch.sqrt(torch.clamp(1 + m22 - m00 - m11, min=1e-12)) * 2
+    qz = torch.stack([(R[:, 1, 0] - R[:, 0, 1]) / s, (R[:, 0, 2] + R[:, 2, 0]) / s,
+                      (R[:, 1, 2] + R[:, 2, 1]) / s, 0.25 * s], -1)
+    for i, cand in enumerate((qw, qx, qy, qz)):
+        q[k == i] = cand[k == i]
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def synthetic_object(n: int, seed: int = 0) -> Splats:
+    """N splats resembling a trained object of unit size (see the module docstring)."""
+    g = torch.Generator().manual_seed(seed)
+    n_surf = round(0.9 * n)
+    n_in = n - n_surf
+    d = torch.randn(n_surf, 3, generator=g, dtype=torch.float64)
+    d = d / d.norm(dim=-1, keepdim=True)
+    theta = torch.acos(d[:, 2].clamp(-1, 1))
+    phi = torch.atan2(d[:, 1], d[:, 0])
+    radius = 0.5 * (1 + 0.12 * torch.sin(3 * theta) * torch.cos(2 * phi))
+    surf = d * (radius + 0.01 * torch.randn(n_surf, generator=g, dtype=torch.float64))[:, None]
+    # tangent frame (t1, t2, normal) as rotation columns
+    helper = torch.where(d[:, 2:3].abs() < 0.9, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                         torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    t1 = torch.linalg.cross(helper, d)
+    t1 = t1 / t1.norm(dim=-1, keepdim=True)
+    t2 = torch.linalg.cross(d, t1)
+    ang = torch.rand(n_surf, generator=g, dtype=torch.float64) * 2 * math.pi
+    t1r = torch.cos(ang)[:, None] * t1 + torch.sin(ang)[:, None] * t2
+    t2r = torch.linalg.cross(d, t1r)
+    R = torch.stack([t1r, t2r, d], dim=-1)  # columns
+    q_surf = _rotmat_to_quat(R)
+    lo, hi = math.log(0.005), math.log(0.03)
+    s_surf = torch.exp(torch.rand(n_surf, 2, generator=g, dtype=torch.float64) * (hi - lo) + lo)
+    s_surf = torch.cat([s_surf, 0.2 * s_surf.min(dim=-1, keepdim=True).values], dim=-1)
+    # interior
+    u = torch.randn(n_in, 3, generator=g, dtype=torch.float64)
+    u = u / u.norm(dim=-1, keepdim=True) * (0.45 * torch.rand(n_in, 1, generator=g, dtype=torch.float64) ** (1 / 3))
+    q_in = torch.randn(n_in, 4, generator=g, dtype=torch.float64)
+    q_in = q_in / q_in.norm(dim=-1, keepdim=True)
+    s_in = torch.exp(torch.rand(n_in, 3, generator=g, dtype=torch.float64) * (hi - lo) + lo)
+    means = torch.cat([surf, u])
+    quats = torch.cat([q_surf, q_in])
+    scales = torch.cat([s_surf, s_in])
+    opac = torch.sigmoid(2.5 + 1.5 * torch.randn(n, generator=g, dtype=torch.float64))
+    colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    perm = torch.randperm(n, generator=g)
+    return Splats(means[perm].float(), scales[perm].float(), quats[perm].float(), opac[perm].float(),
+                  colors[perm].float())
+
+
+def object_camera(width: int, seed: int = 0, distance: float = 4.0, fov_x: float = 0.69) -> Camera:
+    """Square pinhole camera at ``distance`` looking at the origin, horizontal FoV ``fov_x``."""
+    g = torch.Generator().manual_seed(1000 + seed)
+    d = torch.randn(3, generator=g, dtype=torch.float64)
+    eye = d / d.norm() * distance
+    w2c = look_at(eye, torch.zeros(3, dtype=torch.float64)).float()
+    f = width / (2 * math.tan(fov_x / 2))
+    return Camera(w2c, fx=f, fy=f, cx=width / 2, cy=width / 2, width=width, height=width)
+
+
+def measure_peak_gflops(n: int = 2048, reps: int = 5) -> float:
+    """Best fp32 matmul throughput (GFLOP/s, FMA = 2 FLOP) with torch's threads."""
+    a = torch.randn(n, n)
+    b = torch.randn(n, n)
+    torch.mm(a, b)
+    best = math.inf
+    for _ in range(reps):
+        t = time.perf_counter()
+        torch.mm(a, b)
+        best = min(best, time.perf_counter() - t)
+    return 2 * n**3 / best / 1e9
+
+
+def ref_upper_bound_pairs(splats: Splats, cam: Camera) -> int:
+    """sum over tiles of (#splats binned to the tile) x (#pixels): what torch_ref evaluates."""
+    with torch.no_grad():
+        proj = project_splats(splats.means, splats.quats, splats.scales, cam)
+        vis = proj.visible
+        rect = tile_rects(proj.means2d[vis] - 0.5, proj.radii[vis], cam.width, cam.height)
+        gx = math.ceil(cam.width / TILE)
+        gy = math.ceil(cam.height / TILE)
+        # 2D difference array of the rects
+        diff = torch.zeros(gy + 1, gx + 1, dtype=torch.int64)
+        for dx, dy, sgn in ((0, 1, 1), (2, 1, -1), (0, 3, -1), (2, 3, 1)):
+            idx = rect[:, dy] * (gx + 1) + rect[:, dx]
+            diff.view(-1).index_add_(0, idx, torch.full_like(idx, sgn))
+        cnt = diff.cumsum(0).cumsum(1)[:gy, :gx]
+        wx = (cam.width - TILE * torch.arange(gx)).clamp(max=TILE)
+        hy = (cam.height - TILE * torch.arange(gy)).clamp(max=TILE)
+        px = hy[:, None] * wx[None, :]
+        return int((cnt * px).sum())
+
+
+class _Loss:
+    def __init__(self, cam: Camera, channels: int, seed: int = 0) -> None:
+        g = torch.Generator().manual_seed(seed)
+        H, W = cam.height, cam.width
+        self.rc = torch.rand(H, W, channels, generator=g)
+        self.ra = torch.rand(H, W, generator=g)
+        self.rd = torch.rand(H, W, generator=g) * 0.1
+
+    def __call__(self, out) -> Tensor:
+        return (out.color * self.rc).sum() + (out.alpha * self.ra).sum() + (out.depth * self.rd).sum()
+
+    def backward(self, out) -> None:
+        """Backpropagate this loss without forming it (R are its gradients w.r.t. the images)."""
+        torch.autograd.backward([out.color, out.alpha, out.depth], [self.rc, self.ra, self.rd])
+
+
+def _fwd_bwd(rast: Rasterizer, splats: Splats, cam: Camera, loss: _Loss, bg: Tensor,
+             sync: Callable[[], None]) -> tuple[float, dict[str, Tensor]]:
+    params = {k: getattr(splats, k).detach().clone().requires_grad_(True) for k in ATTRS}
+    sync()
+    t = time.perf_counter()
+    out = rast.render(Splats(**params), cam, bg)
+    loss.backward(out)
+    sync()
+    return time.perf_counter() - t, {k: params[k].grad for k in ATTRS}
+
+
+class _GsplatRasterizer(Rasterizer):
+    """gsplat on CUDA with matching settings (only when CUDA and gsplat are available)."""
+
+    name = "gsplat"
+
+    def render(self, splats: Splats, camera: Camera, background: Tensor | None = None):
+        import gsplat  # optional dependency (CUDA machines)
+
+        from src.core.splats import RenderOutput
+
+        dev = torch.device("cuda")
+        s = splats.to(device=dev)
+        K = torch.tensor([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]],
+                         dtype=torch.float32, device=dev)
+        bg = None if background is None else torch.cat([background, torch.zeros(1)]).to(dev)[None]
+        colors, alphas, _meta = gsplat.rasterization(
+            s.means, s.quats, s.scales, s.opacities, s.colors,
+            camera.world_to_cam.to(dev, torch.float32)[None], K[None], camera.width, camera.height,
+            near_plane=0.2, eps2d=0.3, packed=False, render_mode="RGB+ED", backgrounds=bg)
+        return RenderOutput(color=colors[0, ..., :3].cpu(), alpha=alphas[0, ..., 0].cpu(),
+                            depth=colors[0, ..., 3].cpu(), means2d=torch.zeros(0), radii=torch.zeros(0))
+
+
+def _rasterizers() -> dict[str, Rasterizer]:
+    from src.rasterizer.cpu import CpuRasterizer
+    from src.rasterizer.torch_ref import TorchRefRasterizer
+
+    out: dict[str, Rasterizer] = {"torch_ref": TorchRefRasterizer(), "cpu": CpuRasterizer()}
+    if torch.cuda.is_available():
+        try:
+            import gsplat  # noqa: F401
+
+            out["gsplat"] = _GsplatRasterizer()
+        except ImportError:
+            pass
+    return out
+
+
+def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, ref_max_gb: float = 6.0,
+        seed: int = 0, log: Callable[[str], None] = print) -> dict:
+    """Run the benchmark; returns the JSON-ready result dict."""
+    from src.rasterizer.cpu import CpuRasterizer, ensure_built
+
+    ensure_built()
+    rasts = _rasterizers()
+    cuda_sync = torch.cuda.synchronize if "gsplat" in rasts else (lambda: None)
+    peak = measure_peak_gflops()
+    log(f"fp32 sgemm peak: {peak:.1f} GFLOP/s (torch threads: {torch.get_num_threads()}, "
+        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')})")
+    ref_ns_per_pair = 40.0  # prior, replaced by the first measured run
+    rows = []
+    for width, n in sizes:
+        splats = synthetic_object(n, seed=seed)
+        cam = object_camera(width, seed=seed)
+        loss = _Loss(cam, 3, seed=seed)
+        bg = torch.zeros(3)
+        counter = CpuRasterizer(count_pairs=True)
+        _, g_cpu = _fwd_bwd(counter, splats, cam, loss, bg, lambda: None)
+        st = counter.last_stats
+        contrib = int(st["contrib_pairs"])
+        ub = ref_upper_bound_pairs(splats, cam)
+        est_s = ub * ref_ns_per_pair * 1e-9
+        est_gb = ub * 100 / 1e9
+        names = [k for k in rasts if k != "torch_ref"]
+        run_ref = est_s <= ref_max_s and est_gb <= ref_max_gb
+        if run_ref:
+            names = ["torch_ref", *names]
+        times: dict[str, list[float]] = {k: [] for k in names}
+        grads_ref = None
+        for k in names:  # warm-up (also the reference gradients)
+            dt, grads = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
+            if k == "torch_ref":
+                grads_ref = grads
+                ref_ns_per_pair = max(dt / max(ub, 1) * 1e9, 1.0)
+                times[k].append(dt)
+        for _ in range(reps):
+            for k in names:
+                if k == "torch_ref" and (len(times[k]) >= max(1, min(reps, 3)) or
+                                         (times[k] and times[k][0] > 5.0)):
+                    continue
+                dt, _ = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
+                times[k].append(dt)
+        stages = rasts["cpu"].last_stats  # stage times of the last timed cpu run
+        floor_ms = contrib * FLOPS_PER_PAIR / (peak * 1e9) * 1e3
+        ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
+        ms_min = {k: 1e3 * min(v) for k, v in times.items()}
+        err = None
+        if grads_ref is not None:
+            err = max(float((g_cpu[a] - grads_ref[a]).norm() / grads_ref[a].norm().clamp_min(1e-30))
+                      for a in ATTRS)
+        row = {
+            "width": width,
+            "n_splats": n,
+            "ms": ms,
+            "ms_min": ms_min,
+            "speedup_vs_ref": (ms["torch_ref"] / ms["cpu"]) if "torch_ref" in ms else None,
+            "floor_ms": floor_ms,
+            "x_floor": {k: v / floor_ms if floor_ms > 0 else None for k, v in ms.items()},
+            "grad_rel_err": err,
+            "contrib_pairs": contrib,
+            "eval_pairs_fwd": int(st["eval_fwd"]),
+            "eval_pairs_bwd": int(st["eval_bwd"]),
+            "tile_pairs": int(st["tile_pairs"]),
+            "ref_upper_bound_pairs": ub,
+            "ref_skipped": None if run_ref else f"estimated {est_s:.0f} s / {est_gb:.1f} GB",
+            "cpu_stages_ms": {k: v for k, v in stages.items() if k.endswith("_ms")},
+        }
+        rows.append(row)
+        log(_format_row(row))
+    return {"peak_gflops": peak, "threads": torch.get_num_threads(), "flops_per_pair": FLOPS_PER_PAIR,
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""), "rows": rows}
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def _format_row(r: dict) -> str:
+    ms, mn = r["ms"], r["ms_min"]
+    parts = [f"W={r['width']:<4d} N={r['n_splats']:<7d}"]
+    for k in ms:
+        parts.append(f"{k} {ms[k]:8.1f} ms (min {mn[k]:7.1f}, {r['x_floor'][k]:6.0f}x floor)")
+    parts.append(f"speedup {_fmt(r['speedup_vs_ref'], '.0f')}x")
+    parts.append(f"floor {r['floor_ms']:.3f} ms")
+    parts.append(f"contrib {r['contrib_pairs'] / 1e6:.2f}M eval {r['eval_pairs_fwd'] / 1e6:.1f}M")
+    parts.append(f"grad err {_fmt(r['grad_rel_err'], '.1e')}")
+    return " | ".join(parts)
+
+
+def format_table(result: dict) -> str:
+    """Markdown table of a result dict."""
+    names = []
+    for r in result["rows"]:
+        for k in r["ms"]:
+            if k not in names:
+                names.append(k)
+    head = ["W", "N", *[f"{k} ms med (min)" for k in names], "contrib pairs", "floor ms",
+            *[f"{k} x floor" for k in names], "cpu vs ref", "grad rel err"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in result["rows"]:
+        cells = [str(r["width"]), f"{r['n_splats'] // 1000}k"]
+        for k in names:
+            cells.append(f"{r['ms'][k]:.1f} ({r['ms_min'][k]:.1f})" if k in r["ms"] else "skip")
+        cells += [f"{r['contrib_pairs'] / 1e6:.2f}M", f"{r['floor_ms']:.3f}"]
+        for k in names:
+            cells.append(f"{r['x_floor'][k]:.0f}x" if k in r["x_floor"] else "-")
+        cells += [_fmt(r["speedup_vs_ref"], ".0f") + ("x" if r["speedup_vs_ref"] else ""),
+                  _fmt(r["grad_rel_err"], ".1e")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry: ``python -m src.bench rasterizer [--out FILE.json] [--quick]``."""
+    p = argparse.ArgumentParser(prog="python -m src.bench rasterizer", description=__doc__.split("\n")[0])
+    p.add_argument("--out", help="write the results as JSON to this file")
+    p.add_argument("--quick", action="store_true", help="only 100 px x 10k splats (smoke test)")
+    p.add_argument("--reps", type=int, default=None, help="timed repetitions (default 5, quick 3)")
+    p.add_argument("--ref-max-s", type=float, default=20.0, help="skip torch_ref above this estimate")
+    p.add_argument("--ref-max-gb", type=float, default=6.0, help="skip torch_ref above this memory estimate")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch/OpenMP threads for everything (default: torch's default)")
+    args = p.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    sizes = QUICK_SIZES if args.quick else FULL_SIZES
+    reps = args.reps if args.reps is not None else (3 if args.quick else 5)
+    result = run(sizes, reps=reps, ref_max_s=args.ref_max_s, ref_max_gb=args.ref_max_gb, seed=args.seed)
+    print()
+    print(format_table(result))
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(result, f, indent=2)
+        print(f"\nwrote {args.out}")
+    return 0

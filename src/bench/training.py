@@ -1,0 +1,153 @@
+"""``python -m src.bench training [--out FILE.json] [--quick]``: the cost of one training iteration.
+
+For each method (an experiment preset) and splat count, one subprocess (so peak memory is the
+method's own) builds the model from the same configs a run uses, renders one 100 px view per step
+with the rasterizer ``auto`` picks, and times :meth:`src.trainer.Trainer.train_step` split into
+field (splat prediction), rasterizer (forward), backward and optimizer. Densification is off so the
+splat count stays equal across methods. It also bakes the model and times rendering at 200 px.
+Timings are medians over the timed iterations; compare them as ratios within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+METHODS = ("gs3d", "splatfields3d", "sf_mlp")
+SIZES = (10_000, 50_000)
+PARTS = ("field", "rasterizer", "backward", "optimizer")
+
+
+def _rss_peak_mb() -> float:
+    """Peak resident set size of this process (VmHWM) in MiB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int) -> dict:
+    """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process)."""
+    import torch
+    from hydra import compose, initialize_config_dir
+
+    import src.run  # noqa: F401 - registers ${repo:}
+    from src.core.cameras import Camera, look_at
+    from src.data.base import View
+    from src.strategy.base import NoDensification
+    from src.trainer.guard import DivergenceGuard
+    from src.trainer.trainer import Trainer
+    from src.utils.instantiate import build
+
+    conf = Path(__file__).resolve().parents[2] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"+experiment={method}"])
+    g = torch.Generator().manual_seed(0)
+    d = torch.randn(n_splats, 3, generator=g)
+    pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
+
+    class _Scene:
+        n_frames = 1
+
+    model = build(cfg.model, init=pts, scene=_Scene())
+    rasterizer = build(cfg.rasterizer)
+    loss_fn = build(cfg.loss)
+    optimizer = build(cfg.optim)(groups=model.param_groups(), extent=4.0)
+    f = 0.5 * width / math.tan(0.5 * 0.69)
+    w2c = look_at(torch.tensor([0.0, -4.0, 1.0]), torch.zeros(3))
+    cam = Camera(w2c, f, f, width / 2, width / 2, width, width)
+    target = torch.rand(width, width, 3, generator=g)
+    view = View(camera=cam, image=target, mask=(target[..., 0] > 0.5).float(), image_id=0)
+    guard = DivergenceGuard(check_grads=False, collapse_psnr=-math.inf)
+    times: dict[str, list[float]] = {k: [] for k in PARTS}
+    for it in range(warmup + iters):
+        step = Trainer.train_step(model, [view], rasterizer, loss_fn, optimizer, NoDensification(), guard, it, g,
+                                  torch.ones(3))
+        if it >= warmup:
+            for k in PARTS:
+                times[k].append(1000 * step["timing"][k])
+    ms = {k: statistics.median(v) for k, v in times.items()}
+    totals = [sum(times[k][i] for k in PARTS) for i in range(iters)]
+    row = {"method": method, "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
+           getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
+           "iter_ms_min": min(totals)}
+    model.eval()
+    with torch.no_grad():
+        baked = model.bake()
+        fcam = cam.scaled(fps_width / width)
+        rasterizer.render(baked, fcam, torch.ones(3))
+        t0 = time.perf_counter()
+        reps = 5
+        for _ in range(reps):
+            rasterizer.render(baked, fcam, torch.ones(3))
+        row["fps_baked"] = reps / (time.perf_counter() - t0)
+    row["peak_mem_mb"] = _rss_peak_mb()
+    return row
+
+
+def _run_isolated(method: str, n: int, args: argparse.Namespace) -> dict:
+    cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
+           "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width)]
+    p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
+    if p.returncode != 0:
+        return {"method": method, "n_splats": n, "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def print_table(rows: list[dict]) -> None:
+    hdr = f"{'method':<15} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
+    hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'peak MB':>8} {'FPS@200':>8}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        if "error" in r:
+            print(f"{r['method']:<15} {r['n_splats']:>7} failed: {r['error']}")
+            continue
+        parts = " ".join(f"{r['ms'][k]:>10.1f}" for k in PARTS)
+        ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
+        print(f"{r['method']:<15} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} "
+              f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m src.bench training", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", type=Path, help="write the rows as JSON here")
+    ap.add_argument("--quick", action="store_true", help="10k splats, gs3d and splatfields3d, 3 iterations")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
+    ap.add_argument("--iters", type=int, default=5)
+    ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--width", type=int, default=100)
+    ap.add_argument("--fps-width", type=int, default=200)
+    ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.single:
+        print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
+                                 args.fps_width)))
+        return 0
+    methods = ["gs3d", "splatfields3d"] if args.quick else args.methods.split(",")
+    sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
+    if args.quick:
+        args.iters, args.warmup = 3, 1
+    rows = [_run_isolated(m, n, args) for n in sizes for m in methods]
+    for r in rows:
+        base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
+                    None)
+        if base and "error" not in r:
+            r["ratio_vs_gs3d"] = r["iter_ms"] / base["iter_ms"]
+    print_table(rows)
+    if args.out:
+        from src.utils.record import write_json
+
+        write_json(args.out, {"rows": rows, "settings": vars(args) | {"out": str(args.out)}})
+        print(f"wrote {args.out}")
+    return 0 if all("error" not in r for r in rows) else 1

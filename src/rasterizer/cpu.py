@@ -1,0 +1,178 @@
+"""Compiled CPU rasterizer (C++/OpenMP, 8-lane SIMD) with a hand-written backward.
+
+Same semantics as :class:`~src.rasterizer.torch_ref.TorchRefRasterizer` (the 3DGS CUDA rules; see
+:mod:`src.rasterizer`), 1-2 orders of magnitude faster and with O(pixels + splats + tile pairs)
+memory. The projection stays in torch autograd (:func:`project_splats`); the compiled part is the
+depth sort, tile binning and compositing of (means2d, conics, opacities, features) with the depth
+appended as an extra feature channel, the background term and alpha = 1 - T_final, and their
+backward (also w.r.t. the background).
+
+The extension is built on the first render (or :func:`ensure_built`), never at import; see
+:mod:`src.rasterizer._build` for the cache location and flags.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from src.core.cameras import Camera
+from src.core.splats import RenderOutput, Splats
+from src.rasterizer._build import load_extension
+from src.rasterizer.base import Rasterizer
+from src.rasterizer.projection import project_splats
+
+
+def ensure_built(verbose: bool = False) -> None:
+    """Compile/load the extension now (otherwise it happens on the first render)."""
+    load_extension(verbose=verbose)
+
+
+class _RasterizeFunction(torch.autograd.Function):
+    """Composite depth-sorted splats; differentiable in means2d, conics, opacities, features, background.
+
+    Inputs: means2d [N, 2], conics [N, 3], opacities [N], features [N, C + 1] (colours, then depth;
+    float32, contiguous, CPU), depths [N] (sort key, not differentiated), radii [N] int32,
+    visible [N] bool, background [C].
+    Outputs: color [H, W, C] = sum_j c_j alpha_j T_j + T_final bg, alpha [H, W] = 1 - T_final,
+    depth [H, W] = sum_j z_j alpha_j T_j, stats [16] float64 (non-differentiable; see
+    rasterize_cpu.cpp ``forward``).
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any,
+        means2d: Tensor,
+        conics: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        depths: Tensor,
+        radii: Tensor,
+        visible: Tensor,
+        background: Tensor,
+        width: int,
+        height: int,
+        cull: bool,
+        count: bool,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        ext = load_extension()
+        out = ext.forward(means2d, conics, opacities, features, depths, radii, visible, background,
+                          width, height, cull, count)
+        color, alpha, depth, t_final, last, *state, stats = out
+        ctx.save_for_backward(background, t_final, last, *state)
+        ctx.stats = stats
+        ctx.n_splats = means2d.shape[0]
+        ctx.count = count
+        ctx.mark_non_differentiable(stats)
+        return color, alpha, depth, stats
+
+    @staticmethod
+    def backward(ctx: Any, grad_color: Tensor, grad_alpha: Tensor, grad_depth: Tensor,  # type: ignore[override]
+                 _grad_stats: Tensor):
+        ext = load_extension()
+        background, t_final, last, *state = ctx.saved_tensors
+        (g,) = ext.backward(
+            grad_color.contiguous(), grad_alpha.contiguous(), grad_depth.contiguous(), background,
+            t_final, last, *state, ctx.stats, ctx.n_splats, ctx.count)  # [N, 6 + C + 1]
+        grad_bg = None
+        if ctx.needs_input_grad[7]:
+            grad_bg = (grad_color * t_final[..., None]).sum(dim=(0, 1))
+        return (g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], None, None, None, grad_bg,
+                None, None, None, None)
+
+
+def _check_inputs(splats: Splats, camera: Camera, background: Tensor | None) -> None:
+    splats.validate()
+    tensors = {"means": splats.means, "scales": splats.scales, "quats": splats.quats,
+               "opacities": splats.opacities, "colors": splats.colors}
+    for name, t in tensors.items():
+        if t.device.type != "cpu":
+            raise ValueError(f"CpuRasterizer needs CPU tensors; Splats.{name} is on {t.device} "
+                             "(use rasterizer=gsplat on CUDA)")
+        if t.dtype != torch.float32:
+            raise TypeError(f"CpuRasterizer supports float32 only; Splats.{name} is {t.dtype} "
+                            "(use TorchRefRasterizer for float64)")
+    if camera.world_to_cam.device.type != "cpu":
+        raise ValueError(f"CpuRasterizer needs a CPU camera; world_to_cam is on {camera.world_to_cam.device}")
+    if camera.width <= 0 or camera.height <= 0:
+        raise ValueError(f"bad image size {camera.width}x{camera.height}")
+    if background is not None:
+        if background.device.type != "cpu":
+            raise ValueError(f"background must be a CPU tensor, got {background.device}")
+        if background.shape != (splats.colors.shape[1],):
+            raise ValueError(f"background has shape {tuple(background.shape)}, "
+                             f"expected ({splats.colors.shape[1]},)")
+
+
+class CpuRasterizer(Rasterizer):
+    """Compiled C++/OpenMP rasterizer with the torch reference's semantics (float32, CPU).
+
+    Args:
+        cull: exact opacity-aware culling (tile binning and per-half-row). It never changes the
+            result (bit-identical images and gradients); False only for tests and benchmarks.
+        count_pairs: count (pixel, splat) pairs that blend and evaluated vectors into
+            :attr:`last_stats` (costs a few percent).
+
+    Attributes:
+        last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
+            alpha >= 1/255 before termination), ``eval_fwd``/``eval_bwd`` (evaluated pixel-splat
+            pairs, 8 per vector), ``tile_pairs`` (binned (splat, tile) pairs) and stage times in ms
+            (``sort_ms``, ``pack_ms``, ``bin_ms``, ``raster_fwd_ms``, ``raster_bwd_ms``, ``reduce_ms``;
+            wall clock) and the same with ``_cpu_ms`` (process CPU time, all threads).
+    """
+
+    name = "cpu"
+
+    def __init__(self, cull: bool = True, count_pairs: bool = False) -> None:
+        self.cull = bool(cull)
+        self.count_pairs = bool(count_pairs)
+        self._stats: Tensor | None = None
+
+    def ensure_built(self, verbose: bool = False) -> None:
+        """Compile/load the extension now (e.g. before timing); see :func:`ensure_built`."""
+        ensure_built(verbose=verbose)
+
+    @property
+    def last_stats(self) -> dict[str, float]:
+        if self._stats is None:
+            return {}
+        s = self._stats.tolist()
+        return {"contrib_pairs": s[0], "eval_fwd": 8 * s[1], "eval_bwd": 8 * s[2], "tile_pairs": s[3],
+                "sort_ms": s[4], "pack_ms": s[5], "bin_ms": s[6], "raster_fwd_ms": s[7],
+                "raster_bwd_ms": s[8], "reduce_ms": s[9],
+                "sort_cpu_ms": s[10], "pack_cpu_ms": s[11], "bin_cpu_ms": s[12],
+                "raster_fwd_cpu_ms": s[13], "raster_bwd_cpu_ms": s[14], "reduce_cpu_ms": s[15]}
+
+    def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
+        """Render splats (see :class:`Rasterizer`). Differentiable via the compiled backward."""
+        _check_inputs(splats, camera, background)
+        dtype = torch.float32
+        W, H = camera.width, camera.height
+        C = splats.colors.shape[1]
+        if background is None:
+            background = torch.zeros(C, dtype=dtype)
+        background = background.to(dtype=dtype)
+
+        proj = project_splats(splats.means, splats.quats, splats.scales, camera)
+        features = torch.cat([splats.colors, proj.depths[:, None]], dim=1).contiguous()  # [N, C + 1]
+        color, alpha, depth, stats = _RasterizeFunction.apply(
+            proj.means2d.contiguous(),
+            proj.conics.contiguous(),
+            splats.opacities.contiguous(),
+            features,
+            proj.depths.detach().contiguous(),
+            proj.radii.to(torch.int32).contiguous(),
+            proj.visible.contiguous(),
+            background.contiguous(),
+            W,
+            H,
+            self.cull,
+            self.count_pairs,
+        )
+        self._stats = stats
+        return RenderOutput(color=color, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii)
+
+    def __repr__(self) -> str:
+        return f"CpuRasterizer(cull={self.cull})"

@@ -1,0 +1,972 @@
+// CPU (OpenMP + 8-lane SIMD) Gaussian-splat rasterizer with a hand-written backward.
+//
+// Semantics: the original 3DGS CUDA rasterizer, as implemented by src/rasterizer/torch_ref.py:
+//   * visible splats are composited front to back in a stable depth order;
+//   * a splat touches the 16x16 tiles of its 3DGS getRect (centre means2d - 0.5, radius);
+//   * pixel (i, j) is sampled at its centre (i + 0.5, j + 0.5);
+//   * power = -0.5 (a dx^2 + c dy^2) - b dx dy with d = pixel - mean; power > 0 is skipped;
+//   * alpha = min(0.99, o exp(power)), skipped if alpha < 1/255;
+//   * a pixel stops before the splat that would take its transmittance T below 1e-4.
+// With the accumulated features acc = sum_j f_j alpha_j T_j ([H, W, NF]; NF = colour channels + 1
+// for depth), the outputs are colour = acc[..., :C] + T_final bg, alpha = 1 - T_final and
+// depth = acc[..., C], computed exactly as torch_ref does (same float32 operations).
+//
+// Pipeline (forward): per-splat records (original order, sequential) -> stable LSD radix sort of
+// the visible splats by depth -> records gathered into depth order (one cache line each) ->
+// binning: 3DGS getRect (float32, bit-identical to torch's tile_rects), a half-row cull mask per
+// (splat, tile), stable counting sort by tile (O(pairs)) -> compositing.
+//
+// Work decomposition: one OpenMP task per 16x16 tile (dynamic schedule, longest lists first).
+// Inside a tile, splats are the outer loop and pixels the inner loop: 32 "half-rows" of 8 pixels,
+// one SIMD vector each. Exact culling (identical results, only fewer evaluations):
+//   * only half-rows whose pixel-centre x-range meets the chord of the splat's alpha >= 1/255
+//     ellipse  d^T conic d <= 2 ln(255 o)  (inflated to cover float rounding) on that row are
+//     evaluated; a tile of the rect where no half-row qualifies is not binned at all;
+//   * forward: half-rows whose 8 pixels have all terminated are skipped, and a tile stops when all
+//     its pixels have; backward: half-rows whose last contributor is before the splat are skipped.
+// Skipped (pixel, splat) pairs would have had alpha = 0 (masked), so images and gradients are
+// bit-identical with culling on or off (tested).
+//
+// Backward: per tile, the list is walked back to front from the last contributor as in the 3DGS
+// CUDA backward (T recovered by division; D = sum over later splats of w (g . f) + dL/dT_final
+// T_final carries the accumulated-colour and background terms). Each processed (splat, tile)
+// slot gets a record of partial sums over the tile's pixels; records are then reduced per splat
+// in a fixed (tile) order: bit-identical results for any thread count or schedule, no atomics.
+// Memory is O(pixels + splats + tile pairs).
+//
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstdlib>
+#include <ctime>
+#include <limits>
+#include <memory>
+#include <vector>
+
+#include "simd.h"
+
+namespace {
+
+using namespace sf::simd;
+
+constexpr int TILE = 16;
+constexpr int TPIX = TILE * TILE;  // pixels per tile
+constexpr int NHR = 32;            // half-rows (8-pixel vectors) per tile
+constexpr float ALPHA_MAX = 0.99f;
+constexpr float ALPHA_MIN = 1.0f / 255.0f;
+constexpr float T_MIN = 1e-4f;
+constexpr int PREFETCH = 8;  // splats ahead in a tile list
+constexpr int64_t MIN_PAIRS_PARALLEL = 16384;  // fewer (splat, tile) pairs: one thread (~1 ms of work)
+
+// Packed per-splat record (depth-sorted order), one cache line.
+struct alignas(64) Geo {
+  float mx, my;    // means2d (pixel coordinates, centres at i + 0.5)
+  float a, b, c;   // conic: power = -0.5 (a dx^2 + c dy^2) - b dx dy
+  float o;         // opacity
+  float thr;       // cull threshold on Q = d^T conic d (inflated 2 ln(255 o)); <0: never blends; inf: no cull
+  float det;       // a c - b^2 (computed in double)
+  float inv_a;     // 1 / a
+  int16_t rect[4]; // 3DGS tile rect x0, y0, x1, y1
+  float f[4];      // features when NF == 4 (colour + depth), else unused
+  float ry;        // half-height of the cull ellipse (pixels, inflated); < 0: empty
+};
+static_assert(sizeof(Geo) == 64, "Geo must be one cache line");
+
+template <typename T>
+struct AlignedBuf {
+  T* p = nullptr;
+  explicit AlignedBuf(size_t n) {
+    size_t bytes = ((n * sizeof(T) + 63) / 64) * 64;
+    p = static_cast<T*>(std::aligned_alloc(64, bytes > 0 ? bytes : 64));
+    TORCH_CHECK(p != nullptr, "rasterize_cpu: out of memory");
+  }
+  ~AlignedBuf() { std::free(p); }
+  AlignedBuf(const AlignedBuf&) = delete;
+  AlignedBuf& operator=(const AlignedBuf&) = delete;
+};
+
+// Prevents -ffast-math reassociation: forces the value through memory.
+inline float opaque(float x) {
+  asm volatile("" : "+m"(x));
+  return x;
+}
+
+int num_threads() { return std::max(1, at::get_num_threads()); }
+
+// Wall-clock and process CPU time stamps (seconds) for the stage statistics.
+struct Stamp {
+  double wall, cpu;
+};
+inline Stamp now() {
+  timespec ts;
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return {omp_get_wtime(), static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec)};
+}
+// stats[k] = wall ms, stats[k + 6] = CPU ms (all threads) of the interval(s)
+inline void put_ms(double* st, int k, double wall, double cpu) {
+  st[k] = 1e3 * wall;
+  st[k + 6] = 1e3 * cpu;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Depth order: stable LSD radix sort of positive float depths (bit patterns of positive floats
+// are monotone), equal to torch.argsort(depths[vis], stable=True) mapped back to indices.
+std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n) {
+  std::vector<int32_t> idx;
+  idx.reserve(n);
+  for (int64_t i = 0; i < n; ++i)
+    if (visible[i]) idx.push_back(static_cast<int32_t>(i));
+  const size_t m = idx.size();
+  std::vector<uint32_t> key(m), key2(m);
+  std::vector<int32_t> idx2(m);
+  for (size_t i = 0; i < m; ++i) {
+    float d = depth[idx[i]];
+    uint32_t u;
+    std::memcpy(&u, &d, 4);
+    // map IEEE order to unsigned order (handles negatives too, although visible depths are > 0.2)
+    key[i] = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+  }
+  constexpr int BITS = 8;
+  constexpr uint32_t RADIX = 1u << BITS;
+  std::vector<uint32_t> count(RADIX);
+  for (int shift = 0; shift < 32; shift += BITS) {
+    std::fill(count.begin(), count.end(), 0u);
+    for (size_t i = 0; i < m; ++i) count[(key[i] >> shift) & (RADIX - 1)]++;
+    if (m == 0 || count[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
+    uint32_t sum = 0;
+    for (uint32_t r = 0; r < RADIX; ++r) {
+      uint32_t c = count[r];
+      count[r] = sum;
+      sum += c;
+    }
+    for (size_t i = 0; i < m; ++i) {
+      uint32_t pos = count[(key[i] >> shift) & (RADIX - 1)]++;
+      key2[pos] = key[i];
+      idx2[pos] = idx[i];
+    }
+    key.swap(key2);
+    idx.swap(idx2);
+  }
+  return idx;
+}
+
+// Half-row mask of the splat's cull ellipse over a tile: bit (h * 16 + r) set if half-row h (pixels
+// x0 + 8h .. x0 + 8h + 7) of row r may hold a pixel with Q <= thr.
+inline uint32_t ellipse_rows(const Geo& g, float tx0, float ty0) {
+  if (!(g.thr < std::numeric_limits<float>::infinity())) return 0xFFFFFFFFu;
+  const VF a = set1(g.a), thr = set1(g.thr), det = set1(g.det), ia = set1(g.inv_a), nb = set1(-g.b);
+  const VF mx = set1(g.mx);
+  const VF amx = set1(std::fabs(g.mx));
+  const VF athr = a * thr;
+  const VF lo0 = set1(tx0 + 0.5f), hi0 = set1(tx0 + 7.5f), lo1 = set1(tx0 + 8.5f), hi1 = set1(tx0 + 15.5f);
+  uint32_t m0 = 0, m1 = 0;
+  for (int k = 0; k < 2; ++k) {
+    const float yb = ty0 + 8.0f * k;  // rows yb + 0.5 .. yb + 7.5
+    if (!(yb + 7.5f >= g.my - g.ry && yb + 0.5f <= g.my + g.ry)) continue;
+    VF dy = (set1(yb + 0.5f) + iota()) - set1(g.my);
+    VF disc = fnmadd(det * dy, dy, athr);
+    VM ok = disc >= zero();
+    VF s = vsqrt(vmax(disc, zero())) * ia;
+    VF off = nb * dy * ia;
+    VF cen = mx + off;
+    VF marg = set1(1e-3f) + set1(2e-6f) * (amx + vabs(off) + s);
+    VF xlo = cen - s - marg, xhi = cen + s + marg;
+    int l = movemask(ok & (xhi >= lo0) & (xlo <= hi0));
+    int r = movemask(ok & (xhi >= lo1) & (xlo <= hi1));
+    m0 |= static_cast<uint32_t>(l) << (8 * k);
+    m1 |= static_cast<uint32_t>(r) << (8 * k);
+  }
+  return m0 | (m1 << 16);
+}
+
+// power and alpha of one splat on one 8-pixel vector: the single definition shared by the forward
+// and backward so that both take identical decisions.
+struct Eval {
+  VF dx, power, G, alpha;
+};
+inline Eval eval_splat(const Geo& g, VF px, float dy) {
+  Eval e;
+  e.dx = px - set1(g.mx);
+  const float nbdy = -g.b * dy;
+  const float hcdy2 = ((-0.5f * g.c) * dy) * dy;
+  VF t = fmadd(set1(-0.5f * g.a), e.dx, set1(nbdy));
+  e.power = fmadd(t, e.dx, set1(hcdy2));
+  e.G = vexp(e.power);
+  e.alpha = vmin(set1(g.o) * e.G, set1(ALPHA_MAX));
+  return e;
+}
+
+// ---------------------------------------------------------------------------------------------
+struct Binning {
+  int gx = 0, gy = 0, ntiles = 0;
+  std::vector<int64_t> tile_off;    // [ntiles + 1]
+  std::vector<int32_t> tile_list;   // [P] sorted splat index per slot
+  std::vector<uint32_t> tile_mask;  // [P] half-row cull mask per slot
+  std::vector<int64_t> pair_off;    // [M + 1] splat-major pair offsets
+  std::vector<int32_t> pair_slot;   // [P] slot of each splat-major pair
+  std::vector<int32_t> pair_tile;   // [P] tile of each splat-major pair
+};
+
+struct Rect {
+  int x0, y0, x1, y1;
+};
+
+// 3DGS getRect on p = means2d - 0.5 with float32 arithmetic exactly as torch's tile_rects.
+Rect tile_rect(float mx, float my, int radius, int gx, int gy) {
+  const float r = static_cast<float>(radius);
+  auto lo = [&](float p, int gmax) {
+    float v = opaque(p - r);
+    v = opaque(v / 16.0f);
+    v = std::trunc(v);
+    v = std::min(std::max(v, 0.0f), static_cast<float>(gmax));
+    return static_cast<int>(v);
+  };
+  auto hi = [&](float p, int gmax) {
+    float v = opaque(p + r);
+    v = opaque(v + 15.0f);
+    v = opaque(v / 16.0f);
+    v = std::trunc(v);
+    v = std::min(std::max(v, 0.0f), static_cast<float>(gmax));
+    return static_cast<int>(v);
+  };
+  const float px = opaque(mx - 0.5f), py = opaque(my - 0.5f);
+  return {lo(px, gx), lo(py, gy), hi(px, gx), hi(py, gy)};
+}
+
+// Binning: for every splat (in depth order) and every tile of its rect, the half-row mask of its
+// cull ellipse on that tile; tiles with an empty mask are dropped (exact: no pixel there can reach
+// alpha >= 1/255). Stable counting sort by tile: tile lists stay in depth order.
+Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
+  Binning b;
+  b.gx = (W + TILE - 1) / TILE;
+  b.gy = (H + TILE - 1) / TILE;
+  b.ntiles = b.gx * b.gy;
+  const int T = b.ntiles;
+  nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 16384 + 1)));
+  std::vector<int64_t> hist(static_cast<size_t>(nth) * T, 0);
+  std::vector<int32_t> cnt(M);
+  std::vector<std::vector<uint32_t>> masks(nth);  // per thread: masks of all rect tiles, in order
+  // pass 1: masks, per-splat counts and per-(thread, tile) counts over contiguous splat chunks
+#pragma omp parallel num_threads(nth)
+  {
+    const int t = omp_get_thread_num();
+    const int64_t lo = M * t / nth, hi = M * (t + 1) / nth;
+    int64_t* h = hist.data() + static_cast<size_t>(t) * T;
+    std::vector<uint32_t>& mk = masks[t];
+    mk.reserve(static_cast<size_t>((hi - lo) * 2));
+    for (int64_t i = lo; i < hi; ++i) {
+      const Geo& g = geo[i];
+      const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
+      int32_t c = 0;
+      for (int ty = rc.y0; ty < rc.y1; ++ty) {
+        for (int tx = rc.x0; tx < rc.x1; ++tx) {
+          const uint32_t m = ellipse_rows(g, static_cast<float>(tx * TILE), static_cast<float>(ty * TILE));
+          mk.push_back(m);
+          if (m) {
+            h[ty * b.gx + tx]++;
+            c++;
+          }
+        }
+      }
+      cnt[i] = c;
+    }
+  }
+  // offsets: tiles in order, threads (= depth chunks) in order inside a tile -> stable
+  b.tile_off.assign(T + 1, 0);
+  std::vector<int64_t> cursor(static_cast<size_t>(nth) * T);
+  int64_t run = 0;
+  for (int tile = 0; tile < T; ++tile) {
+    b.tile_off[tile] = run;
+    for (int t = 0; t < nth; ++t) {
+      cursor[static_cast<size_t>(t) * T + tile] = run;
+      run += hist[static_cast<size_t>(t) * T + tile];
+    }
+  }
+  b.tile_off[T] = run;
+  const int64_t P = run;
+  TORCH_CHECK(P < (int64_t(1) << 31), "rasterize_cpu: too many (splat, tile) pairs: ", P);
+  b.pair_off.assign(M + 1, 0);
+  for (int64_t i = 0; i < M; ++i) b.pair_off[i + 1] = b.pair_off[i] + cnt[i];
+  b.tile_list.resize(P);
+  b.tile_mask.resize(P);
+  b.pair_slot.resize(P);
+  b.pair_tile.resize(P);
+#pragma omp parallel num_threads(nth)
+  {
+    const int t = omp_get_thread_num();
+    const int64_t lo = M * t / nth, hi = M * (t + 1) / nth;
+    int64_t* cur = cursor.data() + static_cast<size_t>(t) * T;
+    const uint32_t* mk = masks[t].data();
+    for (int64_t i = lo; i < hi; ++i) {
+      const Rect rc = {geo[i].rect[0], geo[i].rect[1], geo[i].rect[2], geo[i].rect[3]};
+      int64_t k = b.pair_off[i];
+      for (int ty = rc.y0; ty < rc.y1; ++ty) {
+        for (int tx = rc.x0; tx < rc.x1; ++tx) {
+          const uint32_t m = *mk++;
+          if (!m) continue;
+          const int tile = ty * b.gx + tx;
+          const int64_t slot = cur[tile]++;
+          b.tile_list[slot] = static_cast<int32_t>(i);
+          b.tile_mask[slot] = m;
+          b.pair_slot[k] = static_cast<int32_t>(slot);
+          b.pair_tile[k] = tile;
+          ++k;
+        }
+      }
+    }
+  }
+  return b;
+}
+
+// Tiles ordered by decreasing work (longest-processing-time first) for the dynamic schedule.
+std::vector<int32_t> tile_schedule(const std::vector<int64_t>& work) {
+  std::vector<int32_t> order(work.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = static_cast<int32_t>(i);
+  std::stable_sort(order.begin(), order.end(), [&](int32_t x, int32_t y) { return work[x] > work[y]; });
+  return order;
+}
+
+// Per-tile pixel geometry: first pixel, valid extent, half-rows with at least one valid pixel.
+struct TileGeom {
+  int tx0, ty0, nx, ny;
+  uint32_t valid_rows;
+};
+inline TileGeom tile_geom(int tile, int gx, int W, int H) {
+  TileGeom t;
+  t.tx0 = (tile % gx) * TILE;
+  t.ty0 = (tile / gx) * TILE;
+  t.nx = std::min(TILE, W - t.tx0);
+  t.ny = std::min(TILE, H - t.ty0);
+  const uint32_t rows = (t.ny >= 16) ? 0xFFFFu : ((1u << t.ny) - 1u);
+  t.valid_rows = rows | (t.nx > 8 ? rows << 16 : 0u);
+  return t;
+}
+
+// Output images of the forward ([H, W] or [H, W, C] with C = NF - 1; depth is feature NF - 1).
+struct ImageOut {
+  float* color;
+  float* alpha;
+  float* depth;
+  float* T;
+  int32_t* last;
+  const float* bg;  // [C]
+};
+// Incoming gradients of the backward.
+struct ImageGrad {
+  const float* color;
+  const float* alpha;
+  const float* depth;
+  const float* bg;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Forward kernel on one tile. State arrays are tile-local [256] (pixel p = r * 16 + 8 h + lane,
+// half-row bit h * 16 + r).
+template <int NFT, bool COUNT>
+void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, int nf,
+                  const int32_t* __restrict__ list, const uint32_t* __restrict__ lmask, int64_t n,
+                  const TileGeom& tg, int W, float* __restrict__ T, int32_t* __restrict__ done,
+                  int32_t* __restrict__ last, float* __restrict__ acc, const ImageOut& out,
+                  int64_t* stats) {
+  const int NF = NFT > 0 ? NFT : nf;
+  for (int p = 0; p < TPIX; ++p) {
+    const int r = p / TILE, x = p % TILE;
+    T[p] = 1.0f;
+    last[p] = -1;
+    done[p] = (r < tg.ny && x < tg.nx) ? 0 : -1;
+  }
+  for (int k = 0; k < NF * TPIX; ++k) acc[k] = 0.0f;
+  uint32_t alive = tg.valid_rows;
+  const float fx0 = static_cast<float>(tg.tx0), fy0 = static_cast<float>(tg.ty0);
+  const VF px_h[2] = {set1(fx0 + 0.5f) + iota(), set1(fx0 + 8.5f) + iota()};
+  const VF one = set1(1.0f), amin = set1(ALPHA_MIN), tmin = set1(T_MIN), zf = zero();
+  const VM all = zf <= zf;
+  int64_t n_contrib = 0, n_eval = 0;
+  for (int64_t jl = 0; jl < n && alive; ++jl) {
+    if (jl + PREFETCH < n) __builtin_prefetch(geo + list[jl + PREFETCH]);
+    uint32_t rows = lmask[jl] & alive;
+    if (!rows) continue;
+    const int32_t gi = list[jl];
+    const Geo& g = geo[gi];
+    const float* f = NFT == 4 ? g.f : feat + static_cast<int64_t>(gi) * NF;
+    const VI jv = iset1(static_cast<int32_t>(jl));
+    do {
+      const int hr = __builtin_ctz(rows);
+      rows &= rows - 1;
+      const int h = hr >> 4, r = hr & 15;
+      const int p0 = r * TILE + 8 * h;
+      const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
+      const Eval e = eval_splat(g, px_h[h], dy);
+      const VM dn = mload(done + p0);
+      const VM m = (e.power <= zf) & (e.alpha >= amin) & andnot(dn, all);
+      const VF Tv = load(T + p0);
+      const VF testT = Tv * (one - e.alpha);
+      const VM term = m & (testT < tmin);
+      const VM contrib = andnot(term, m);
+      const VF w = select(contrib, e.alpha, zf) * Tv;
+      for (int c = 0; c < NF; ++c) {
+        float* ac = acc + c * TPIX + p0;
+        store(ac, fmadd(w, set1(f[c]), load(ac)));
+      }
+      store(T + p0, select(contrib, testT, Tv));
+      istore(last + p0, iselect(contrib, jv, iload(last + p0)));
+      const VM nd = dn | term;
+      mstore(done + p0, nd);
+      if (movemask(nd) == 0xFF) alive &= ~(1u << hr);
+      if (COUNT) {
+        n_contrib += __builtin_popcount(movemask(contrib));
+        n_eval += 1;
+      }
+    } while (rows);
+  }
+  for (int r = 0; r < tg.ny; ++r) {
+    for (int x = 0; x < tg.nx; ++x) {
+      const int p = r * TILE + x;
+      const int64_t o = static_cast<int64_t>(tg.ty0 + r) * W + (tg.tx0 + x);
+      const float Tp = T[p];
+      out.T[o] = Tp;
+      out.alpha[o] = 1.0f - Tp;
+      out.last[o] = last[p];
+      for (int c = 0; c < NF - 1; ++c) out.color[o * (NF - 1) + c] = acc[c * TPIX + p] + Tp * out.bg[c];
+      out.depth[o] = acc[(NF - 1) * TPIX + p];
+    }
+  }
+  if (COUNT) {
+    stats[0] += n_contrib;
+    stats[1] += n_eval;
+  }
+}
+
+// Backward kernel on one tile: walks the list back to front from the tile's last contributor and
+// writes, per processed slot, R = 6 + NF partial sums over the tile's pixels:
+// [sum dpow dx, sum dpow dy, sum dpow dx^2, sum dpow dx dy, sum dpow dy^2, sum G dalpha, sum w g_c...]
+// (dpow = dL/dpower, w = alpha T, g = dL/dacc). Returns the number of processed slots.
+template <int NFT, bool COUNT>
+int64_t backward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, int nf,
+                      const int32_t* __restrict__ list, const uint32_t* __restrict__ lmask,
+                      const TileGeom& tg, int W, const float* __restrict__ in_T,
+                      const int32_t* __restrict__ in_last, const ImageGrad& gin,
+                      float* __restrict__ T, float* __restrict__ D,
+                      int32_t* __restrict__ last, float* __restrict__ gpix, VF* __restrict__ accv,
+                      float* __restrict__ rec, int64_t* stats) {
+  const int NF = NFT > 0 ? NFT : nf;
+  const int R = 6 + NF;
+  for (int p = 0; p < TPIX; ++p) {
+    T[p] = 1.0f;
+    D[p] = 0.0f;
+    last[p] = -1;
+  }
+  for (int k = 0; k < NF * TPIX; ++k) gpix[k] = 0.0f;
+  int32_t jmax = -1;
+  for (int r = 0; r < tg.ny; ++r) {
+    for (int x = 0; x < tg.nx; ++x) {
+      const int p = r * TILE + x;
+      const int64_t o = static_cast<int64_t>(tg.ty0 + r) * W + (tg.tx0 + x);
+      T[p] = in_T[o];
+      // dL/dT_final (colour = acc + T_final bg, alpha = 1 - T_final) times T_final: the
+      // background/alpha term of dL/dalpha_j
+      float gT = -gin.alpha[o];
+      for (int c = 0; c < NF - 1; ++c) {
+        const float gc = gin.color[o * (NF - 1) + c];
+        gpix[c * TPIX + p] = gc;
+        gT += gin.bg[c] * gc;
+      }
+      gpix[(NF - 1) * TPIX + p] = gin.depth[o];
+      D[p] = gT * in_T[o];
+      last[p] = in_last[o];
+      jmax = std::max(jmax, in_last[o]);
+    }
+  }
+  if (jmax < 0) return 0;
+  // half-rows sorted by their last contributor (descending): they become active as jl reaches it
+  int32_t hr_last[NHR], hr_order[NHR];
+  for (int hr = 0; hr < NHR; ++hr) {
+    const int h = hr >> 4, r = hr & 15, p0 = r * TILE + 8 * h;
+    int32_t mx = -1;
+    for (int l = 0; l < 8; ++l) mx = std::max(mx, last[p0 + l]);
+    hr_last[hr] = mx;
+    hr_order[hr] = hr;
+  }
+  std::sort(hr_order, hr_order + NHR, [&](int32_t x, int32_t y) {
+    return hr_last[x] != hr_last[y] ? hr_last[x] > hr_last[y] : x < y;
+  });
+  int next = 0;
+  uint32_t active = 0;
+  const float fx0 = static_cast<float>(tg.tx0), fy0 = static_cast<float>(tg.ty0);
+  const VF px_h[2] = {set1(fx0 + 0.5f) + iota(), set1(fx0 + 8.5f) + iota()};
+  const VF one = set1(1.0f), amin = set1(ALPHA_MIN), amax = set1(ALPHA_MAX), zf = zero();
+  int64_t n_eval = 0;
+  for (int32_t jl = jmax; jl >= 0; --jl) {
+    while (next < NHR && hr_last[hr_order[next]] >= jl) active |= 1u << hr_order[next++];
+    if (jl >= PREFETCH) __builtin_prefetch(geo + list[jl - PREFETCH]);
+    float* out = rec + static_cast<int64_t>(jl) * R;
+    uint32_t rows = lmask[jl] & active;
+    if (!rows) {
+      for (int k = 0; k < R; ++k) out[k] = 0.0f;
+      continue;
+    }
+    const int32_t gi = list[jl];
+    const Geo& g = geo[gi];
+    const float* f = NFT == 4 ? g.f : feat + static_cast<int64_t>(gi) * NF;
+    for (int k = 0; k < R; ++k) accv[k] = zf;
+    const VI jm1 = iset1(jl - 1);
+    const VF o = set1(g.o);
+    do {
+      const int hr = __builtin_ctz(rows);
+      rows &= rows - 1;
+      const int h = hr >> 4, r = hr & 15;
+      const int p0 = r * TILE + 8 * h;
+      const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
+      const Eval e = eval_splat(g, px_h[h], dy);
+      const VM m = (e.power <= zf) & (e.alpha >= amin) & igt(iload(last + p0), jm1);
+      const VF am = select(m, e.alpha, zf);
+      const VF rcp = one / (one - am);
+      const VF Tj = load(T + p0) * rcp;  // transmittance before this splat
+      const VF Dv = load(D + p0);
+      VF gf = zf;
+      for (int c = 0; c < NF; ++c) gf = fmadd(load(gpix + c * TPIX + p0), set1(f[c]), gf);
+      const VF dalpha = fnmadd(Dv, rcp, Tj * gf);  // T_j g.f - D / (1 - alpha)
+      const VF w = am * Tj;
+      store(D + p0, fmadd(w, gf, Dv));
+      store(T + p0, Tj);
+      const VM unclamped = m & ((o * e.G) <= amax);
+      const VF dpow = select(unclamped, am * dalpha, zf);
+      const VF dGo = select(unclamped, e.G * dalpha, zf);
+      const VF dy_v = set1(dy);
+      const VF pdx = dpow * e.dx, pdy = dpow * dy_v;
+      accv[0] = accv[0] + pdx;
+      accv[1] = accv[1] + pdy;
+      accv[2] = fmadd(pdx, e.dx, accv[2]);
+      accv[3] = fmadd(pdx, dy_v, accv[3]);
+      accv[4] = fmadd(pdy, dy_v, accv[4]);
+      accv[5] = accv[5] + dGo;
+      for (int c = 0; c < NF; ++c) accv[6 + c] = fmadd(w, load(gpix + c * TPIX + p0), accv[6 + c]);
+      if (COUNT) n_eval += 1;
+    } while (rows);
+    int k = 0;
+    for (; k + 8 <= R; k += 8) hsum8(accv + k, out + k);
+    for (; k < R; ++k) out[k] = hsum(accv[k]);
+  }
+  if (COUNT) stats[2] += n_eval;
+  return static_cast<int64_t>(jmax) + 1;
+}
+
+struct TileScratch {
+  AlignedBuf<float> f;
+  AlignedBuf<int32_t> i;
+  AlignedBuf<VF> v;
+  explicit TileScratch(int nf) : f(static_cast<size_t>(TPIX) * (3 + nf)), i(2 * TPIX), v(6 + nf + 8) {}
+};
+
+// ---------------------------------------------------------------------------------------------
+// Python entry points.
+
+void check_f32(const at::Tensor& t, const char* name, int64_t dim) {
+  TORCH_CHECK(t.device().is_cpu(), "rasterize_cpu: ", name, " must be a CPU tensor, got ", t.device());
+  TORCH_CHECK(t.scalar_type() == at::kFloat, "rasterize_cpu: ", name, " must be float32, got ",
+              t.scalar_type());
+  TORCH_CHECK(t.dim() == dim, "rasterize_cpu: ", name, " must have ", dim, " dims, got ", t.dim());
+  TORCH_CHECK(t.is_contiguous(), "rasterize_cpu: ", name, " must be contiguous");
+}
+
+template <typename V>
+at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
+  auto t = at::empty({static_cast<int64_t>(v.size())}, st);
+  if (!v.empty()) std::memcpy(t.data_ptr(), v.data(), v.size() * sizeof(V));
+  return t;
+}
+
+// Forward.
+// Args: means2d [N,2], conics [N,3], opacities [N], features [N,NF] (colours, then depth), depths [N]
+//       (sort key), radii [N] int32, visible [N] bool, background [NF-1]; width, height; cull
+//       (exact culling on/off); count (pair statistics).
+// Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
+//          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
+//          last contributor, -1 if none), then the state for the backward: order [M] int32,
+//          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
+//          tile_mask [P] int32, pair_off [M+1] int64, pair_slot [P] int32, pair_tile [P] int32,
+//          and stats [16] float64: contrib pairs, evaluated fwd vectors, evaluated bwd vectors,
+//          tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
+//          reduction, then the process CPU times of the same six stages.
+std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                   at::Tensor features, at::Tensor depths, at::Tensor radii,
+                                   at::Tensor visible, at::Tensor background, int64_t width,
+                                   int64_t height, bool cull, bool count) {
+  check_f32(means2d, "means2d", 2);
+  check_f32(conics, "conics", 2);
+  check_f32(opacities, "opacities", 1);
+  check_f32(features, "features", 2);
+  check_f32(depths, "depths", 1);
+  check_f32(background, "background", 1);
+  const int64_t N = means2d.size(0);
+  TORCH_CHECK(means2d.size(1) == 2, "rasterize_cpu: means2d must be [N, 2]");
+  TORCH_CHECK(conics.size(0) == N && conics.size(1) == 3, "rasterize_cpu: conics must be [N, 3]");
+  TORCH_CHECK(opacities.size(0) == N, "rasterize_cpu: opacities must be [N]");
+  TORCH_CHECK(features.size(0) == N && features.size(1) >= 1, "rasterize_cpu: features must be [N, NF>=1]");
+  TORCH_CHECK(depths.size(0) == N, "rasterize_cpu: depths must be [N]");
+  TORCH_CHECK(background.size(0) == features.size(1) - 1,
+              "rasterize_cpu: background must have NF - 1 = ", features.size(1) - 1, " channels");
+  TORCH_CHECK(radii.device().is_cpu() && radii.scalar_type() == at::kInt && radii.dim() == 1 &&
+                  radii.size(0) == N && radii.is_contiguous(),
+              "rasterize_cpu: radii must be a contiguous CPU int32 [N] tensor");
+  TORCH_CHECK(visible.device().is_cpu() && visible.scalar_type() == at::kBool && visible.dim() == 1 &&
+                  visible.size(0) == N && visible.is_contiguous(),
+              "rasterize_cpu: visible must be a contiguous CPU bool [N] tensor");
+  TORCH_CHECK(width > 0 && height > 0 && width <= 65536 && height <= 65536,
+              "rasterize_cpu: bad image size ", width, "x", height);
+  const int W = static_cast<int>(width), H = static_cast<int>(height);
+  const int NF = static_cast<int>(features.size(1));
+  const int nth = num_threads();
+  const Stamp t0 = now();
+
+  const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
+  // per-splat records in the original order (sequential reads), then one gathered line per splat
+  AlignedBuf<Geo> geo_orig(static_cast<size_t>(std::max<int64_t>(N, 1)));
+  {
+    const float* m2 = means2d.data_ptr<float>();
+    const float* cn = conics.data_ptr<float>();
+    const float* op = opacities.data_ptr<float>();
+    const float* fe = features.data_ptr<float>();
+    const bool* vis = visible.data_ptr<bool>();
+    const int32_t* rad = radii.data_ptr<int32_t>();
+    Geo* go = geo_orig.p;
+    at::parallel_for(0, N, 32768, [&](int64_t lo, int64_t hi) {
+      for (int64_t s = lo; s < hi; ++s) {
+        if (!vis[s]) continue;
+        Geo g;
+        g.mx = m2[2 * s];
+        g.my = m2[2 * s + 1];
+        g.a = cn[3 * s];
+        g.b = cn[3 * s + 1];
+        g.c = cn[3 * s + 2];
+        g.o = op[s];
+        const double a = g.a, b = g.b, c = g.c;
+        const double det = a * c - b * b;
+        g.det = static_cast<float>(det);
+        g.inv_a = static_cast<float>(1.0 / a);
+        if (!cull || !(det > 0.0) || !(a > 0.0) || !(c > 0.0) || !std::isfinite(det)) {
+          g.thr = std::numeric_limits<float>::infinity();
+        } else if (!(g.o >= ALPHA_MIN)) {
+          g.thr = -1.0f;  // o exp(power) <= o < 1/255 everywhere
+        } else {
+          // alpha >= 1/255  <=>  Q <= 2 ln(255 o); inflated for the float rounding of the kernel's
+          // power (relative error ~ eps x condition of the conic) and of the fast exp.
+          const double t = 2.0 * static_cast<double>(std::log(g.o * 255.0f));
+          const double kappa = (std::fabs(a) + std::fabs(c) + 2.0 * std::fabs(b)) * (a + c) / det;
+          const double thr = t * (1.0 + 1e-3 + 1e-5 * kappa) + 1e-3;
+          g.thr = thr < 1e30 ? static_cast<float>(thr) : std::numeric_limits<float>::infinity();
+        }
+        const Rect rc = tile_rect(g.mx, g.my, rad[s], gx, gy);
+        g.rect[0] = static_cast<int16_t>(rc.x0);
+        g.rect[1] = static_cast<int16_t>(rc.y0);
+        g.rect[2] = static_cast<int16_t>(rc.x1);
+        g.rect[3] = static_cast<int16_t>(rc.y1);
+        for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = (NF == 4) ? fe[s * 4 + c2] : 0.0f;
+        if (std::isinf(g.thr)) {
+          g.ry = std::numeric_limits<float>::infinity();
+        } else if (g.thr < 0.0f) {
+          g.ry = -1.0f;
+        } else {  // max |dy| on Q = thr is sqrt(thr a / det)
+          g.ry = static_cast<float>(std::sqrt(static_cast<double>(g.thr) * a / det) * (1.0 + 1e-4) + 1e-3);
+        }
+        go[s] = g;
+      }
+    });
+  }
+  const Stamp t1 = now();
+  const std::vector<int32_t> order = depth_order(depths.data_ptr<float>(), visible.data_ptr<bool>(), N);
+  const int64_t M = static_cast<int64_t>(order.size());
+  const Stamp t2 = now();
+  auto geo_t = at::empty({M, 16}, at::kFloat);
+  auto feat_t = at::empty({NF == 4 ? 0 : M, NF}, at::kFloat);
+  Geo* geo = reinterpret_cast<Geo*>(geo_t.data_ptr<float>());
+  TORCH_CHECK(reinterpret_cast<uintptr_t>(geo) % 64 == 0 || M == 0, "rasterize_cpu: misaligned buffer");
+  {
+    const Geo* go = geo_orig.p;
+    const float* fe = features.data_ptr<float>();
+    float* fs = feat_t.data_ptr<float>();
+    at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
+      for (int64_t i = lo; i < hi; ++i) {
+        if (i + 16 < hi) __builtin_prefetch(go + order[i + 16]);
+        geo[i] = go[order[i]];
+        if (NF != 4)
+          for (int c = 0; c < NF; ++c) fs[i * NF + c] = fe[static_cast<int64_t>(order[i]) * NF + c];
+      }
+    });
+  }
+  const Stamp t3 = now();
+  Binning bins = bin_tiles(geo, M, W, H, nth);
+  const Stamp t4 = now();
+  const int T = bins.ntiles;
+  const int64_t P = bins.tile_off[T];
+
+  auto color_t = at::empty({H, W, NF - 1}, at::kFloat);
+  auto alpha_t = at::empty({H, W}, at::kFloat);
+  auto depth_t = at::empty({H, W}, at::kFloat);
+  auto Tf_t = at::empty({H, W}, at::kFloat);
+  auto last_t = at::empty({H, W}, at::kInt);
+  auto stats_t = at::zeros({16}, at::kDouble);
+  std::vector<int64_t> work(T);
+  for (int t = 0; t < T; ++t) work[t] = bins.tile_off[t + 1] - bins.tile_off[t];
+  const std::vector<int32_t> sched = tile_schedule(work);
+  std::vector<int64_t> tstats(static_cast<size_t>(nth) * 8, 0);
+  const int nth_tiles = P < MIN_PAIRS_PARALLEL ? 1 : nth;
+  {
+    const float* fs = feat_t.data_ptr<float>();
+    const ImageOut iout{color_t.data_ptr<float>(), alpha_t.data_ptr<float>(), depth_t.data_ptr<float>(),
+                        Tf_t.data_ptr<float>(), last_t.data_ptr<int32_t>(), background.data_ptr<float>()};
+#pragma omp parallel num_threads(nth_tiles)
+    {
+      TileScratch s(NF);
+      int64_t* st = tstats.data() + 8 * omp_get_thread_num();
+#pragma omp for schedule(dynamic, 1)
+      for (int k = 0; k < T; ++k) {
+        const int tile = sched[k];
+        const TileGeom tg = tile_geom(tile, gx, W, H);
+        const int32_t* list = bins.tile_list.data() + bins.tile_off[tile];
+        const uint32_t* lmask = bins.tile_mask.data() + bins.tile_off[tile];
+        const int64_t n = bins.tile_off[tile + 1] - bins.tile_off[tile];
+        float* Tb = s.f.p;
+        float* accb = s.f.p + TPIX;
+        int32_t* doneb = s.i.p;
+        int32_t* lastb = s.i.p + TPIX;
+#define SF_FWD(NFT, CNT) \
+  forward_tile<NFT, CNT>(geo, fs, NF, list, lmask, n, tg, W, Tb, doneb, lastb, accb, iout, st)
+        if (NF == 4) {
+          if (count) SF_FWD(4, true); else SF_FWD(4, false);
+        } else {
+          if (count) SF_FWD(0, true); else SF_FWD(0, false);
+        }
+#undef SF_FWD
+      }
+    }
+  }
+  const Stamp t5 = now();
+  double* st = stats_t.data_ptr<double>();
+  for (int t = 0; t < nth; ++t) {
+    st[0] += static_cast<double>(tstats[8 * t]);
+    st[1] += static_cast<double>(tstats[8 * t + 1]);
+  }
+  st[3] = static_cast<double>(P);
+  put_ms(st, 4, t2.wall - t1.wall, t2.cpu - t1.cpu);  // sort
+  put_ms(st, 5, (t1.wall - t0.wall) + (t3.wall - t2.wall), (t1.cpu - t0.cpu) + (t3.cpu - t2.cpu));  // pack
+  put_ms(st, 6, t4.wall - t3.wall, t4.cpu - t3.cpu);  // binning
+  put_ms(st, 7, t5.wall - t4.wall, t5.cpu - t4.cpu);  // raster fwd
+
+  auto order_t = to_tensor(order, at::kInt);
+  return {color_t,
+          alpha_t,
+          depth_t,
+          Tf_t,
+          last_t,
+          order_t,
+          geo_t,
+          feat_t,
+          to_tensor(bins.tile_off, at::kLong),
+          to_tensor(bins.tile_list, at::kInt),
+          to_tensor(bins.tile_mask, at::kInt),
+          to_tensor(bins.pair_off, at::kLong),
+          to_tensor(bins.pair_slot, at::kInt),
+          to_tensor(bins.pair_tile, at::kInt),
+          stats_t};
+}
+
+// Backward. grad_color [H,W,NF-1], grad_alpha [H,W], grad_depth [H,W], background [NF-1] plus the
+// forward's saved tensors. Returns one
+// [N, 6 + NF] tensor of gradients w.r.t. means2d (cols 0-1), conics (2-4), opacities (5) and
+// features (6..) (zero for culled splats).
+// Writes the evaluated backward vectors and the times into stats[2], stats[8], stats[9].
+std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, at::Tensor grad_depth,
+                                    at::Tensor background, at::Tensor T_final,
+                                    at::Tensor last, at::Tensor order, at::Tensor geo_t,
+                                    at::Tensor feat_t, at::Tensor tile_off, at::Tensor tile_list,
+                                    at::Tensor tile_mask, at::Tensor pair_off,
+                                    at::Tensor pair_slot, at::Tensor pair_tile, at::Tensor stats,
+                                    int64_t n_splats, bool count) {
+  check_f32(grad_color, "grad_color", 3);
+  check_f32(grad_alpha, "grad_alpha", 2);
+  check_f32(grad_depth, "grad_depth", 2);
+  check_f32(background, "background", 1);
+  check_f32(T_final, "T_final", 2);
+  const int H = static_cast<int>(T_final.size(0)), W = static_cast<int>(T_final.size(1));
+  const int NF = static_cast<int>(feat_t.size(1));
+  TORCH_CHECK(grad_color.size(0) == H && grad_color.size(1) == W && grad_color.size(2) == NF - 1,
+              "rasterize_cpu: grad_color shape mismatch");
+  TORCH_CHECK(grad_alpha.size(0) == H && grad_alpha.size(1) == W, "rasterize_cpu: grad_alpha shape mismatch");
+  TORCH_CHECK(grad_depth.size(0) == H && grad_depth.size(1) == W, "rasterize_cpu: grad_depth shape mismatch");
+  TORCH_CHECK(background.size(0) == NF - 1, "rasterize_cpu: background shape mismatch");
+  const int64_t N = n_splats, M = order.size(0);
+  const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
+  const int T = gx * gy;
+  const int nth = num_threads();
+  const Stamp t0 = now();
+  const int R = 6 + NF;
+  const int64_t P = tile_list.size(0);
+  // records [P, R] in slot order: only the slots up to each tile's last contributor are written
+  // and read
+  std::unique_ptr<float[]> rec(new float[static_cast<size_t>(std::max<int64_t>(P, 1)) * R]);
+  std::vector<int64_t> nproc(T, 0);
+  const int64_t* toff = tile_off.data_ptr<int64_t>();
+  const int32_t* tl = tile_list.data_ptr<int32_t>();
+  const uint32_t* tm = reinterpret_cast<const uint32_t*>(tile_mask.data_ptr<int32_t>());
+  const int32_t* lastp = last.data_ptr<int32_t>();
+  std::vector<int64_t> work(T);
+  for (int t = 0; t < T; ++t) {
+    const TileGeom tg = tile_geom(t, gx, W, H);
+    int32_t jm = -1;
+    for (int r = 0; r < tg.ny; ++r) {
+      const int32_t* row = lastp + static_cast<int64_t>(tg.ty0 + r) * W + tg.tx0;
+      for (int x = 0; x < tg.nx; ++x) jm = std::max(jm, row[x]);
+    }
+    work[t] = jm + 1;
+  }
+  const std::vector<int32_t> sched = tile_schedule(work);
+  std::vector<int64_t> tstats(static_cast<size_t>(nth) * 8, 0);
+  const int nth_tiles = P < MIN_PAIRS_PARALLEL ? 1 : nth;
+  {
+    const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
+    const float* fs = feat_t.data_ptr<float>();
+    const float* inT = T_final.data_ptr<float>();
+    const ImageGrad gin{grad_color.data_ptr<float>(), grad_alpha.data_ptr<float>(),
+                        grad_depth.data_ptr<float>(), background.data_ptr<float>()};
+    float* recp = rec.get();
+#pragma omp parallel num_threads(nth_tiles)
+    {
+      TileScratch s(NF);
+      int64_t* st = tstats.data() + 8 * omp_get_thread_num();
+#pragma omp for schedule(dynamic, 1)
+      for (int k = 0; k < T; ++k) {
+        const int tile = sched[k];
+        if (work[tile] == 0) continue;
+        const TileGeom tg = tile_geom(tile, gx, W, H);
+        float* Tb = s.f.p;
+        float* Db = s.f.p + TPIX;
+        float* gpix = s.f.p + 2 * TPIX;
+        int32_t* lastb = s.i.p;
+#define SF_BWD(NFT, CNT)                                                                            \
+  nproc[tile] = backward_tile<NFT, CNT>(gp, fs, NF, tl + toff[tile], tm + toff[tile], tg, W, inT, lastp, \
+                                        gin, Tb, Db, lastb, gpix, s.v.p, recp + toff[tile] * R, st)
+        if (NF == 4) {
+          if (count) SF_BWD(4, true); else SF_BWD(4, false);
+        } else {
+          if (count) SF_BWD(0, true); else SF_BWD(0, false);
+        }
+#undef SF_BWD
+      }
+    }
+  }
+  const Stamp t1 = now();
+  // Per-splat reduction over its tiles in a fixed (tile) order, written in depth order (sequential),
+  // then gathered into the original order (random reads are prefetched; random writes are not).
+  // One output row per splat: [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)].
+  auto g_all = at::empty({N, R}, at::kFloat);
+  {
+    const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
+    const int32_t* ord = order.data_ptr<int32_t>();
+    const int64_t* poff = pair_off.data_ptr<int64_t>();
+    const int32_t* pslot = pair_slot.data_ptr<int32_t>();
+    const int32_t* ptile = pair_tile.data_ptr<int32_t>();
+    float* og = g_all.data_ptr<float>();
+    const float* recp = rec.get();
+    std::vector<int64_t> pend(T);  // slot is processed iff slot < pend[tile]
+    for (int t = 0; t < T; ++t) pend[t] = toff[t] + nproc[t];
+    std::unique_ptr<float[]> gs(new float[static_cast<size_t>(std::max<int64_t>(M, 1)) * R]);
+    std::vector<int32_t> inv(N, -1);
+    for (int64_t i = 0; i < M; ++i) inv[ord[i]] = static_cast<int32_t>(i);
+    float* gsp = gs.get();
+    at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
+      const int64_t kend = poff[hi];
+      for (int64_t i = lo; i < hi; ++i) {
+        float* sum = gsp + i * R;
+        for (int q = 0; q < R; ++q) sum[q] = 0.0f;
+        for (int64_t k = poff[i]; k < poff[i + 1]; ++k) {
+          if (k + 16 < kend) __builtin_prefetch(recp + static_cast<int64_t>(pslot[k + 16]) * R);
+          const int64_t slot = pslot[k];
+          if (slot >= pend[ptile[k]]) continue;  // after its tile's last contributor
+          const float* r = recp + slot * R;
+          for (int q = 0; q < R; ++q) sum[q] += r[q];
+        }
+        const Geo& g = gp[i];
+        const float s0 = sum[0], s1 = sum[1];
+        sum[0] = g.a * s0 + g.b * s1;
+        sum[1] = g.b * s0 + g.c * s1;
+        sum[2] = -0.5f * sum[2];
+        sum[3] = -sum[3];
+        sum[4] = -0.5f * sum[4];
+      }
+    });
+    at::parallel_for(0, N, 65536, [&](int64_t lo, int64_t hi) {
+      for (int64_t s = lo; s < hi; ++s) {
+        if (s + 16 < hi && inv[s + 16] >= 0) __builtin_prefetch(gsp + static_cast<int64_t>(inv[s + 16]) * R);
+        float* o = og + s * R;
+        const int32_t i = inv[s];
+        if (i < 0) {
+          for (int q = 0; q < R; ++q) o[q] = 0.0f;
+        } else {
+          const float* src = gsp + static_cast<int64_t>(i) * R;
+          for (int q = 0; q < R; ++q) o[q] = src[q];
+        }
+      }
+    });
+  }
+  const Stamp t2 = now();
+  double* st = stats.data_ptr<double>();
+  int64_t ev = 0;
+  for (int t = 0; t < nth; ++t) ev += tstats[8 * t + 2];
+  st[2] = static_cast<double>(ev);
+  put_ms(st, 8, t1.wall - t0.wall, t1.cpu - t0.cpu);  // raster bwd
+  put_ms(st, 9, t2.wall - t1.wall, t2.cpu - t1.cpu);  // reduction
+  return {g_all};
+}
+
+// Test helpers.
+at::Tensor fast_exp(at::Tensor x) {
+  check_f32(x, "x", 1);
+  auto y = at::empty({x.size(0)}, at::kFloat);
+  const int64_t n = x.size(0);
+  const float* xp = x.data_ptr<float>();
+  float* yp = y.data_ptr<float>();
+  alignas(32) float buf[8];
+  for (int64_t i = 0; i < n; i += 8) {
+    for (int l = 0; l < 8; ++l) buf[l] = i + l < n ? xp[i + l] : 0.0f;
+    store(buf, vexp(load(buf)));
+    for (int l = 0; l < 8 && i + l < n; ++l) yp[i + l] = buf[l];
+  }
+  return y;
+}
+
+at::Tensor depth_order_py(at::Tensor depths, at::Tensor visible) {
+  check_f32(depths, "depths", 1);
+  TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous() &&
+                  visible.size(0) == depths.size(0),
+              "visible must be a contiguous bool tensor like depths");
+  auto o = depth_order(depths.data_ptr<float>(), visible.data_ptr<bool>(), depths.size(0));
+  auto t = at::empty({static_cast<int64_t>(o.size())}, at::kLong);
+  std::copy(o.begin(), o.end(), t.data_ptr<int64_t>());
+  return t;
+}
+
+bool has_avx2() {
+#ifdef SF_SIMD_AVX2
+  return true;
+#else
+  return false;
+#endif
+}
+
+}  // namespace
+
+TORCH_LIBRARY(splatfields_cpu, m) {
+  m.def("forward", &forward);
+  m.def("backward", &backward);
+  m.def("fast_exp", &fast_exp);
+  m.def("depth_order", &depth_order_py);
+  m.def("has_avx2", &has_avx2);
+}
