@@ -136,6 +136,8 @@ class Trainer:
         strategy.bind(scene, rasterizer)
         start = 0
         prev_train_s = 0.0
+        resumed_timing: dict[str, float] = {}
+        resumed_n_timed = 0
         if self.resume and ckpt_path.is_file():
             ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
             model.load_state_dict(ck["model"])
@@ -148,15 +150,25 @@ class Trainer:
             generator.set_state(ck["generator"])
             start = ck["iteration"] + 1
             prev_train_s = ck["extra"].get("train_s", 0.0)
+            # Resume = the uninterrupted run: the guard's running PSNR decides when a run fails, and the
+            # timing sums make iter_ms cover the whole run (and defined if only evaluation was left).
+            guard.running_psnr = ck["extra"].get("guard_running_psnr")
+            resumed_timing, resumed_n_timed = ck["extra"].get("timing", {}), ck["extra"].get("n_timed", 0)
             log.info("resumed from %s at iteration %d", ckpt_path, start)
 
         writer = None
         if self.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            writer = SummaryWriter(str(run_dir / "tb"))
-        timing = defaultdict(float)
-        n_timed = 0
+            # purge_step: TensorBoard drops the killed run's events from `start` on (no doubled curves).
+            writer = SummaryWriter(str(run_dir / "tb"), purge_step=start or None)
+        timing = defaultdict(float, resumed_timing)
+        n_timed = resumed_n_timed
+
+        def ckpt_extra() -> dict:  # everything besides model/optimizer/strategy/RNGs that a resume needs
+            return {"train_s": prev_train_s + time.perf_counter() - t_start, "guard_running_psnr": guard.running_psnr,
+                    "timing": dict(timing), "n_timed": n_timed}
+
         t_start = time.perf_counter()
         bar = tqdm(range(start, self.iterations), disable=not self.progress, dynamic_ncols=True,
                    desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
@@ -189,13 +201,12 @@ class Trainer:
                 writer.add_image("train/render", renders[0].color.detach().clamp(0, 1), it, dataformats="HWC")
                 writer.add_image("train/gt", views[0].image, it, dataformats="HWC")
             if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
-                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator,
-                                     {"train_s": prev_train_s + time.perf_counter() - t_start})
+                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra())
         bar.close()
         train_s = prev_train_s + time.perf_counter() - t_start
         if self.iterations > start:
             self.save_checkpoint(ckpt_path, model, optimizer, strategy, self.iterations - 1, rng, generator,
-                                 {"train_s": train_s})
+                                 {**ckpt_extra(), "train_s": train_s})
         if writer is not None:
             writer.close()
         n = max(n_timed, 1)
