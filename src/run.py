@@ -71,6 +71,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     for stale in run_dir.glob(".*.tmp"):
         stale.unlink(missing_ok=True)
     device = resolve_device(cfg.device)
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
     record: dict = {
         "status": "running", "error": None, "reason": None,
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
@@ -88,7 +90,6 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     t0 = time.perf_counter()
     try:
         generator = seed_everything(cfg.seed)
-        torch.set_num_threads(cfg.threads) if cfg.get("threads") else None
         dataset = build(cfg.dataset)
         scene = dataset.load().to(device)
         record["keys"]["scene"] = scene.name
@@ -136,7 +137,7 @@ def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, gener
     """
     rasterizer = build(cfg.rasterizer)
     init_points = build(cfg.init)(scene, generator)
-    model = build(cfg.model, init=init_points.to(device), scene=scene).to(device)
+    model = build(cfg.model, init=init_points.to(device), n_frames=scene.n_frames).to(device)
     loss_fn = build(cfg.loss)
     strategy = build(cfg.strategy, extent=scene.extent)
     optim_factory = build(cfg.optim)

@@ -20,18 +20,13 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 REPO = CONF.parent
 
 
-class _Scene:
-    def __init__(self, n_frames: int) -> None:
-        self.n_frames = n_frames
-
-
 def _model(overrides: list[str], n: int = 200, n_frames: int = 1, seed: int = 0):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose(config_name="config", overrides=overrides)
     g = torch.Generator().manual_seed(seed)
     pts = (torch.rand(n, 3, generator=g) * 2 - 1) * 0.5
-    return build(cfg.model, init=pts, scene=_Scene(n_frames)), cfg
+    return build(cfg.model, init=pts, n_frames=n_frames), cfg
 
 
 def test_static_model_bakes_to_the_same_image():

@@ -54,10 +54,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
 
-    class _Scene:
-        n_frames = 1
-
-    model = build(cfg.model, init=pts, scene=_Scene())
+    model = build(cfg.model, init=pts, n_frames=1)
     rasterizer = build(cfg.rasterizer)
     loss_fn = build(cfg.loss)
     optimizer = build(cfg.optim)(groups=model.param_groups(), extent=4.0)

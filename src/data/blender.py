@@ -169,6 +169,10 @@ class BlenderDataset:
 
     def load(self) -> Scene:
         """Read the scene: selected training views, test (and val) views, normalised cameras."""
+        from src.data.detect import check_format, detect_format
+
+        if detect_format(self.root) not in (None, "blender"):
+            check_format(self.root, "blender")  # names the format the folder looks like
         centres = camera_centres(self.root, "train").numpy()
         view_ids = select_views(centres, self.n_views, seed=self.view_seed)
         train, _ = read_split(self.root, "train", self.background, self.downscale, view_ids)

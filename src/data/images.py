@@ -22,7 +22,11 @@ def read_image(path: Path | str) -> Tensor:
     path = Path(path)
     if not path.is_file():
         raise DatasetError(f"image file not found: {path}")
-    inp = oiio.ImageInput.open(str(path))
+    # straight (unassociated) alpha: OpenImageIO premultiplies RGBA PNGs by default, and composite()
+    # applies alpha itself
+    spec = oiio.ImageSpec()
+    spec.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(str(path), spec)
     if inp is None:
         raise DatasetError(f"cannot read image {path}: {oiio.geterror()}")
     try:
@@ -40,7 +44,7 @@ def read_image(path: Path | str) -> Tensor:
 
 
 def write_png(path: Path | str, image: Tensor) -> None:
-    """Write [H, W, C] float in [0, 1] (C = 1, 3 or 4) as an 8-bit PNG (rounded, clamped)."""
+    """Write [H, W, C] float in [0, 1] (C = 1, 3 or 4; straight alpha) as an 8-bit PNG (rounded, clamped)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arr = (image.detach().float().clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
@@ -50,6 +54,7 @@ def write_png(path: Path | str, image: Tensor) -> None:
     if out is None:
         raise OSError(f"cannot create {path}: {oiio.geterror()}")
     spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], arr.shape[2], oiio.UINT8)
+    spec.attribute("oiio:UnassociatedAlpha", 1)  # the data is straight alpha: store it as is
     out.open(str(path), spec)
     out.write_image(arr)
     out.close()

@@ -23,7 +23,7 @@ class DeformableGaussianModel(GaussianSplatModel):
 
     Args:
         init: [N, 3] canonical centres.
-        scene: the loaded scene (unused; kept for a uniform builder signature).
+        n_frames: number of frames of the scene (scales the time jitter).
         pe_x: positional-encoding levels of the position (Deformable-3DGS: 10).
         pe_t: levels of time (Deformable-3DGS: 6 for synthetic data).
         depth: hidden layers of the trunk (8), width: neurons (256), skip: the layer after which the input is
@@ -34,7 +34,7 @@ class DeformableGaussianModel(GaussianSplatModel):
         Other arguments as :class:`GaussianSplatModel`.
     """
 
-    def __init__(self, init: Tensor, scene: object | None = None, pe_x: int = 10, pe_t: int = 6, depth: int = 8,
+    def __init__(self, init: Tensor, n_frames: int = 1, pe_x: int = 10, pe_t: int = 6, depth: int = 8,
                  width: int = 256, skip: int = 4, warm_up: int = 3000, time_noise: float = 0.0,
                  time_noise_until: int = 20_000, method: str = "deformable3dgs", **kwargs: object) -> None:
         super().__init__(init, method=method, **kwargs)
@@ -47,7 +47,7 @@ class DeformableGaussianModel(GaussianSplatModel):
         self.warm_up = warm_up
         self.time_noise = time_noise
         self.time_noise_until = time_noise_until
-        self.n_frames = int(getattr(scene, "n_frames", 1) or 1)
+        self.n_frames = max(1, int(n_frames))
         self.iteration = 0
 
     def param_groups(self) -> list[dict]:

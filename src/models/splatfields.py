@@ -28,7 +28,8 @@ class SplatFieldsModel(SplatModel):
         network: the field network, or a partial of it (``_partial_: true`` in the config) that is
             completed here with the scene's ``n_frames`` and the ``flow``.
         flow: flow model (or a partial taking ``n_frames``/``hidden_dim``) for dynamic scenes; None = static.
-        scene: the loaded scene (supplies ``n_frames``); None means a static scene.
+        n_frames: number of frames of the scene (1 = static). Passed as a number by ``src.run``: Hydra
+            would turn a dataclass argument (e.g. the Scene) into a config node.
         method: label in run records.
         clone_mode: how densification clones a query point. ``jitter`` (default, the paper's intent of
             adding detail): the clone is moved by N(0, clone_jitter x its base scale), so it is a new
@@ -43,11 +44,11 @@ class SplatFieldsModel(SplatModel):
     """
 
     def __init__(self, init: Tensor, network: SplatFieldNetwork | Callable[..., SplatFieldNetwork],
-                 flow: object | None = None, scene: object | None = None, method: str = "splatfields3d",
+                 flow: object | None = None, n_frames: int = 1, method: str = "splatfields3d",
                  clone_mode: str = "jitter", clone_jitter: float = 0.5, max_splats: int | None = None,
                  time_noise: float = 0.0, time_noise_until: int = 20_000, **_: object) -> None:
         super().__init__()
-        n_frames = int(getattr(scene, "n_frames", 1) or 1)
+        n_frames = max(1, int(n_frames))
         if not isinstance(network, torch.nn.Module):
             kwargs = {"n_frames": n_frames}
             if flow is not None:

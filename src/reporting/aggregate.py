@@ -505,7 +505,7 @@ def _paper_value(
         return None, None
     try:
         return paper.lookup(system, _as_views(views), column), column
-    except KeyError:  # system or view count not in this table
+    except (KeyError, ValueError):  # system, view count or column not in this table
         return None, None
 
 
