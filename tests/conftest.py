@@ -36,3 +36,12 @@ def random_camera(width: int = 32, height: int = 32, seed: int = 0, dtype=torch.
 @pytest.fixture
 def tiny_scene():
     return random_scene(12, seed=1, dtype=torch.float64), random_camera(32, 32, seed=2, dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """Tiny tensors: one intra-op thread is faster (and kinder to shared cores) than many."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

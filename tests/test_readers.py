@@ -39,13 +39,7 @@ READERS = {"dnerf": DNerfDataset, "blender_mv": BlenderMVDataset, "owlii": Owlii
 CONF = Path(__file__).resolve().parents[1] / "conf" / "dataset"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny tensors: one intra-op thread is faster (and kinder to shared cores) than many."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")

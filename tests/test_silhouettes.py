@@ -81,12 +81,7 @@ def gt_path(rel: str) -> Path:
     return DATA / rel / "gt_points.npz"
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @cache

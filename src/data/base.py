@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -12,6 +14,19 @@ from src.core.cameras import Camera
 
 class DatasetError(ValueError):
     """A dataset could not be read: the message names the file, the field and what was expected."""
+
+
+def read_json(path: Path, what: str) -> dict:
+    """A JSON object from ``path`` (DatasetError naming the file if missing or malformed)."""
+    if not path.is_file():
+        raise DatasetError(f"{what} not found: {path}")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise DatasetError(f"{path}: malformed JSON ({e})") from e
+    if not isinstance(data, dict):
+        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    return data
 
 
 @dataclass

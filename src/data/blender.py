@@ -9,7 +9,6 @@ at the image centre. Images are composited on the configured background; alpha b
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import torch
 from torch import Tensor
 
 from src.core.cameras import Camera, opengl_to_opencv
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, Scene, View, read_json
 from src.data.images import composite, read_image, resize_premultiplied
 from src.data.normalise import cameras_extent, fit_normalisation, normalise_camera
 from src.data.views import select_views
@@ -40,14 +39,7 @@ def parse_background(background: str | list[float] | tuple[float, ...]) -> Tenso
 
 def load_transforms(path: Path) -> dict:
     """Read and validate a transforms JSON; errors name the file and the key."""
-    if not path.is_file():
-        raise DatasetError(f"transforms file not found: {path}")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{path}: malformed JSON ({e})") from e
-    if not isinstance(data, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level")
+    data = read_json(path, "transforms file")
     for key in ("camera_angle_x", "frames"):
         if key not in data:
             raise DatasetError(f"{path}: missing key '{key}'")

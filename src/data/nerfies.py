@@ -26,7 +26,6 @@ to the last training frame (warning).
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -34,7 +33,7 @@ import numpy as np
 import torch
 
 from src.core.cameras import Camera
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, Scene, View, read_json
 from src.data.blender import parse_background
 from src.data.detect import check_format, check_root
 from src.data.dnerf import apply_normalisation, fit_dynamic_normalisation, hull_groups, scene_meta, strided
@@ -42,19 +41,6 @@ from src.data.normalise import cameras_extent
 from src.data.owlii import COMPOSITE_MODES, IMAGE_SUFFIXES, load_rgb_mask
 
 log = logging.getLogger(__name__)
-
-
-def read_json(path: Path, what: str) -> dict:
-    """A JSON object from ``path`` (DatasetError naming the file if missing or malformed)."""
-    if not path.is_file():
-        raise DatasetError(f"{what} not found: {path}")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"{path}: malformed JSON ({e})") from e
-    if not isinstance(data, dict):
-        raise DatasetError(f"{path}: expected a JSON object at the top level")
-    return data
 
 
 def nerfies_camera(path: Path) -> tuple[torch.Tensor, dict]:
