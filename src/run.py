@@ -103,6 +103,7 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
         per_view = ev.pop("per_view_test")
         per_frame = ev.pop("per_frame", None)
+        unavailable = ev.pop("unavailable_metrics", None)
         record["metrics"] = {
             "psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
             "n_params": model.n_params(), "train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
@@ -112,6 +113,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         record["per_view"] = per_view
         if per_frame is not None:
             record["per_frame"] = per_frame
+        if unavailable:
+            record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
         record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
         write_artifacts(model, run_dir)
         record["status"] = "ok"

@@ -37,6 +37,9 @@ def test_gs3d_smoke_writes_complete_record(tmp_path):
     assert rec["experiment"] == "gs3d" and rec["env"]["torch"]
     assert 5 < rec["metrics"]["psnr"] < 60
     assert (out / "splats.ply").is_file() and (out / "checkpoint.pt").is_file()
+    # LPIPS needs user-supplied backbone weights: without them it is recorded as unavailable, never faked
+    if "lpips" not in rec["metrics"]:
+        assert "lpips" in rec["unavailable_metrics"]
     assert any((out / "renders" / "test").glob("*.png"))
     assert any((out / "tb").iterdir())
     # a second invocation skips the finished run

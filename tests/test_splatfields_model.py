@@ -94,3 +94,20 @@ def test_ablation_rows_run(tmp_path, exp):
 
     rec = json.loads((out / "metrics.json").read_text())
     assert rec["status"] == "ok" and rec["method"] == exp
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("exp", ["owl_4view", "deformable3dgs", "monocular"])
+def test_dynamic_experiments_run_on_shipped_data(tmp_path, exp):
+    """`+experiment=<4D preset> +ci=smoke` end to end on the shipped multi-view / monocular sequences."""
+    import json
+
+    out = tmp_path / exp
+    p = subprocess.run([sys.executable, "-m", "src.run", f"+experiment={exp}", f"hydra.run.dir={out}", "+ci=smoke",
+                        "trainer.iterations=4", "init.n_points=200", "threads=1"],
+                       cwd=REPO, capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr[-3000:]
+    rec = json.loads((out / "metrics.json").read_text())
+    assert rec["status"] == "ok"
+    assert rec["per_frame"] and len({f["time"] for f in rec["per_frame"]}) > 1
+    assert rec["metrics"]["fps_baked"] > 0 and rec["metrics"]["fps_fields"] > 0

@@ -25,11 +25,14 @@ class Evaluator:
         moran_k: neighbourhood size N (5).
         moran_max_splats: subsample to this many splats for Moran's I (kNN cost).
         fps_repeats: renders of the baked model used to time rendering FPS (0 = skip).
+        perceptual: score LPIPS (only with user-supplied backbone weights) and ST-LPIPS (if installed) on the
+            test views; what cannot be computed is recorded as unavailable, never as a number.
+        perceptual_net: LPIPS backbone (``alex`` or ``vgg``).
     """
 
     def __init__(self, save_renders: bool = True, quantise: bool = True, train_views: bool = True,
                  moran: bool = True, moran_k: int = 5, moran_max_splats: int = 50_000,
-                 fps_repeats: int = 3) -> None:
+                 fps_repeats: int = 3, perceptual: bool = True, perceptual_net: str = "alex") -> None:
         self.save_renders = save_renders
         self.quantise = quantise
         self.train_views = train_views
@@ -37,26 +40,42 @@ class Evaluator:
         self.moran_k = moran_k
         self.moran_max_splats = moran_max_splats
         self.fps_repeats = fps_repeats
+        self.perceptual = perceptual
+        self.perceptual_net = perceptual_net
 
     @torch.no_grad()
     def score_views(self, model: SplatModel, rasterizer: Rasterizer, views: list[View], background,
-                    out_dir: Path | None) -> dict:
-        """Per-view and mean PSNR / SSIM of ``views``; optionally writes renders."""
+                    out_dir: Path | None, perceptual: bool = False) -> dict:
+        """Per-view and mean PSNR / SSIM (and perceptual metrics if asked) of ``views``; optionally writes renders."""
         per_view = []
+        unavailable: dict = {}
         for v in views:
             splats = model.splats(v.camera)
             img = rasterizer.render(splats, v.camera, background).color
             if self.quantise:
                 img = quantise(img)
             p, s = psnr(img, v.image), ssim_eval(img, v.image)
-            per_view.append({"name": v.camera.name, "image_id": v.image_id, "time": v.camera.time,
-                             "psnr": p, "ssim": s})
+            row = {"name": v.camera.name, "image_id": v.image_id, "time": v.camera.time, "psnr": p, "ssim": s}
+            if perceptual:
+                from src.eval.perceptual import perceptual_metrics
+
+                pm = perceptual_metrics(img, v.image, self.perceptual_net)
+                row.update({k: pm[k] for k in ("lpips", "st_lpips") if pm[k] is not None})
+                unavailable.update(pm["reasons"])
+            per_view.append(row)
             if out_dir is not None:
                 stem = f"{v.image_id:04d}_{v.camera.name}"
                 write_png(out_dir / f"{stem}.png", img)
                 write_png(out_dir / f"{stem}_gt.png", v.image)
-        return {"psnr": mean_finite([x["psnr"] for x in per_view]),
-                "ssim": mean_finite([x["ssim"] for x in per_view]), "per_view": per_view}
+        out = {"psnr": mean_finite([x["psnr"] for x in per_view]),
+               "ssim": mean_finite([x["ssim"] for x in per_view]), "per_view": per_view}
+        for k in ("lpips", "st_lpips"):
+            vals = [x[k] for x in per_view if k in x]
+            if vals and k not in unavailable:
+                out[k] = mean_finite(vals)
+        if unavailable:
+            out["unavailable_metrics"] = unavailable
+        return out
 
     @torch.no_grad()
     def evaluate(self, model: SplatModel, rasterizer: Rasterizer, scene: Scene, run_dir: Path) -> dict:
@@ -64,8 +83,9 @@ class Evaluator:
         model.eval()
         bg = scene.background
         test = self.score_views(model, rasterizer, scene.test, bg,
-                                run_dir / "renders" / "test" if self.save_renders else None)
+                                run_dir / "renders" / "test" if self.save_renders else None, self.perceptual)
         out: dict = {"psnr": test["psnr"], "ssim": test["ssim"], "per_view_test": test["per_view"]}
+        out.update({k: test[k] for k in ("lpips", "st_lpips", "unavailable_metrics") if k in test})
         if self.train_views:
             tr = self.score_views(model, rasterizer, scene.train, bg, None)
             out.update({"psnr_train": tr["psnr"], "ssim_train": tr["ssim"],

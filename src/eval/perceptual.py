@@ -15,7 +15,7 @@ Nothing here downloads anything, and nothing reports a number it did not compute
   ``sys.modules`` for the import only (and removed right after).
 
 A metric that cannot be computed is ``None`` with a reason in ``out["reasons"]``, never a fake value.
-Not wired into :class:`src.eval.Evaluator` yet.
+Used by :class:`src.eval.Evaluator` (``eval.perceptual``) on the test views.
 """
 
 from __future__ import annotations
