@@ -34,7 +34,8 @@ def _rss_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int) -> dict:
+def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
+            rasterizer: str = "auto") -> dict:
     """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process)."""
     import torch
     from hydra import compose, initialize_config_dir
@@ -49,7 +50,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"+experiment={method}"])
+        cfg = compose(config_name="config", overrides=[f"+experiment={method}", f"rasterizer={rasterizer}"])
     g = torch.Generator().manual_seed(0)
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
@@ -92,7 +93,8 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
 
 def _run_isolated(method: str, n: int, args: argparse.Namespace) -> dict:
     cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
-           "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width)]
+           "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width),
+           "--rasterizer", args.rasterizer]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     if p.returncode != 0:
         return {"method": method, "n_splats": n, "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
@@ -125,11 +127,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--width", type=int, default=100)
     ap.add_argument("--fps-width", type=int, default=200)
+    ap.add_argument("--rasterizer", default="auto", help="rasterizer config (auto, cpu, torch_ref, gsplat)")
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
-                                 args.fps_width)))
+                                 args.fps_width, args.rasterizer)))
         return 0
     methods = ["gs3d", "splatfields3d"] if args.quick else args.methods.split(",")
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
