@@ -1,0 +1,44 @@
+"""Initialisers: visual hull, from a finished 3DGS run (two-stage protocol), clear error without it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from src.core.splats import Splats
+from src.data.blender import BlenderDataset
+from src.data.hull import inside_hull
+from src.init import FromRunInit, HullInit
+from src.io.ply import write_ply
+from tests.scenes import write_blender_scene
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    root = write_blender_scene(tmp_path_factory.mktemp("s") / "scene", n_train=6, n_test=1, size=32)
+    return BlenderDataset(str(root), n_views=6, n_test=1).load()
+
+
+def test_hull_points_are_inside_every_training_mask(scene):
+    pts = HullInit(n_points=500)(scene, torch.Generator().manual_seed(0))
+    assert pts.shape == (500, 3) and pts.abs().max() <= 1.0
+    assert inside_hull(pts.double(), [v.camera for v in scene.train], [v.mask for v in scene.train]).all()
+
+
+def test_from_run_reads_the_ply_filters_to_the_hull_and_subsamples(scene, tmp_path):
+    g = torch.Generator().manual_seed(1)
+    inside = HullInit(n_points=300)(scene, g)
+    outside = torch.full((50, 3), 0.99)  # a corner of the box: outside the object's hull
+    means = torch.cat([inside, outside])
+    n = means.shape[0]
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    splats = Splats(means, torch.full((n, 3), 0.01), quats, torch.full((n,), 0.5), torch.rand(n, 3, generator=g))
+    write_ply(tmp_path / "splats.ply", splats)
+    pts = FromRunInit(run_dir=str(tmp_path), n_points=200)(scene, g)
+    assert pts.shape == (200, 3)
+    assert inside_hull(pts.double(), [v.camera for v in scene.train], [v.mask for v in scene.train]).all()
+
+
+def test_from_run_without_artefact_names_the_command(scene, tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"python -m src.run \+experiment=gs3d"):
+        FromRunInit(run_dir=str(tmp_path / "missing"))(scene, torch.Generator())
