@@ -26,6 +26,8 @@ log = logging.getLogger("src.run")
 REPO_ROOT = Path(__file__).resolve().parents[1]
 if not OmegaConf.has_resolver("repo"):
     OmegaConf.register_new_resolver("repo", lambda: str(REPO_ROOT))
+if not OmegaConf.has_resolver("basename"):
+    OmegaConf.register_new_resolver("basename", lambda p: Path(str(p)).name)
 
 
 def resolve_device(name: str) -> torch.device:

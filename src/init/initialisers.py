@@ -81,7 +81,7 @@ class FromRunInit:
             raise FileNotFoundError(
                 f"{path} not found: produce it with `python -m src.run +experiment=gs3d "
                 f"dataset.root={scene.meta.get('root', '<scene>')} dataset.n_views={len(scene.train)} "
-                f"hydra.run.dir={self.run_dir}`"
+                f"hydra.run.dir={self.run_dir}` (or +experiment=gs3d_stage1 with the same dataset and seed)"
             )
         pts = read_ply(path).means.float()
         if self.hull_filter:
