@@ -103,6 +103,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
         evaluator = build(cfg.eval)
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
+        if cfg.trainer.get("tensorboard", False):
+            evaluator.log_images(run_dir, model, rasterizer, scene, step=int(cfg.trainer.iterations))
         per_view = ev.pop("per_view_test")
         per_frame = ev.pop("per_frame", None)
         unavailable = ev.pop("unavailable_metrics", None)

@@ -41,7 +41,12 @@ def test_gs3d_smoke_writes_complete_record(tmp_path):
     if "lpips" not in rec["metrics"]:
         assert "lpips" in rec["unavailable_metrics"]
     assert any((out / "renders" / "test").glob("*.png"))
-    assert any((out / "tb").iterdir())
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(str(out / "tb"))
+    ea.Reload()
+    assert {"loss/l1", "loss/dssim", "loss/mask", "loss/total"} <= set(ea.Tags()["scalars"])
+    assert "eval/test_0" in ea.Tags()["images"]
     # a second invocation skips the finished run
     p2 = run_cli("+experiment=gs3d", f"dataset.root={root}", f"hydra.run.dir={out}", "+ci=smoke")
     assert p2.returncode == 0 and "skipping" in (p2.stderr + p2.stdout)

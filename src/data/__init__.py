@@ -6,6 +6,6 @@ masks, never from a per-scene table); images are [H, W, 3] float in [0, 1] compo
 configured background; masks are [H, W] in [0, 1].
 """
 
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, DatasetReader, Scene, View
 
-__all__ = ["DatasetError", "Scene", "View"]
+__all__ = ["DatasetError", "DatasetReader", "Scene", "View"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -87,3 +88,11 @@ class Scene:
                     v.mask = v.mask.to(device)
         self.background = self.background.to(device)
         return self
+
+
+class DatasetReader(ABC):
+    """A scene reader (one per file format): constructor arguments are the ``dataset/`` config keys."""
+
+    @abstractmethod
+    def load(self) -> Scene:
+        """Read the scene: selected training views, test (and val) views, normalised OpenCV cameras."""

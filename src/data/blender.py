@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from src.core.cameras import Camera, opengl_to_opencv
-from src.data.base import DatasetError, Scene, View, read_json
+from src.data.base import DatasetError, DatasetReader, Scene, View, read_json
 from src.data.images import composite, read_image, resize_premultiplied
 from src.data.normalise import cameras_extent, fit_normalisation, normalise_camera
 from src.data.views import select_views
@@ -121,7 +121,7 @@ def camera_centres(root: Path, split: str = "train") -> Tensor:
     return torch.tensor([fr["transform_matrix"] for fr in data["frames"]], dtype=torch.float64)[:, :3, 3]
 
 
-class BlenderDataset:
+class BlenderDataset(DatasetReader):
     """Reader for NeRF-synthetic scenes with deterministic sparse training views.
 
     Args:

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, DatasetReader, Scene, View
 from src.data.blender import load_transforms, parse_background, read_split
 from src.data.detect import check_format, check_root
 from src.data.hull import hull_bounds
@@ -151,7 +151,7 @@ def scene_meta(fmt: str, root: Path, train: list[View], **extra) -> dict:
 
 
 # -- the reader --------------------------------------------------------------------------------------
-class DNerfDataset:
+class DNerfDataset(DatasetReader):
     """Reader for D-NeRF monocular dynamic scenes (every training image is a training view).
 
     Args:

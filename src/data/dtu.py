@@ -17,7 +17,7 @@ Normalisation: the data is already in the unit sphere through ``scale_mat`` (no 
 
 from __future__ import annotations
 
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, DatasetReader, Scene, View
 from src.data.blender import parse_background
 from src.data.detect import check_format, check_root
 from src.data.dnerf import scene_meta, strided
@@ -28,7 +28,7 @@ PIXELNERF_TRAIN = [25, 22, 28, 40, 44, 48, 0, 8, 13]
 PIXELNERF_EXCLUDE = [3, 4, 5, 6, 7, 16, 17, 18, 19, 20, 21, 36, 37, 38, 39]
 
 
-class DTUDataset:
+class DTUDataset(DatasetReader):
     """Reader for DTU scans in the NeuS/IDR layout (static scene, sparse training views).
 
     Args:

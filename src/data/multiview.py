@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, DatasetReader, Scene, View
 from src.data.blender import load_transforms, parse_background, read_split
 from src.data.detect import check_format, check_root
 from src.data.dnerf import (
@@ -66,7 +66,7 @@ def read_rig(path: Path) -> tuple[dict, list[dict]]:
     return data, recs
 
 
-class BlenderMVDataset:
+class BlenderMVDataset(DatasetReader):
     """Reader for multi-view dynamic scenes in the NeRF-synthetic-like ``blender_mv`` layout.
 
     Args:

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from src.core.cameras import Camera
-from src.data.base import DatasetError, Scene, View, read_json
+from src.data.base import DatasetError, DatasetReader, Scene, View, read_json
 from src.data.blender import parse_background
 from src.data.detect import check_format, check_root
 from src.data.dnerf import apply_normalisation, fit_dynamic_normalisation, hull_groups, scene_meta, strided
@@ -70,7 +70,7 @@ def nerfies_camera(path: Path) -> tuple[torch.Tensor, dict]:
     return w2c, {"fx": f, "fy": f * aspect, "cx": cx, "cy": cy, "width": w, "height": h}
 
 
-class NerfiesDataset:
+class NerfiesDataset(DatasetReader):
     """Reader for Nerfies-layout dynamic scenes (Nerfies, HyperNeRF, NeRF-DS).
 
     Args:

@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from src.core.cameras import Camera
-from src.data.base import DatasetError, Scene, View
+from src.data.base import DatasetError, DatasetReader, Scene, View
 from src.data.blender import parse_background
 from src.data.detect import check_format, check_root
 from src.data.dnerf import scene_meta, strided
@@ -212,7 +212,7 @@ def _cam_index(name: str) -> int:
 
 
 # -- the reader ----------------------------------------------------------------------------------
-class OwliiDataset:
+class OwliiDataset(DatasetReader):
     """Reader for OwlII-like multi-view video in the ResFields / NeuS layout.
 
     Args:

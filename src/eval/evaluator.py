@@ -98,6 +98,20 @@ class Evaluator:
         model.train()
         return out
 
+    @torch.no_grad()
+    def log_images(self, run_dir: Path, model: SplatModel, rasterizer: Rasterizer, scene: Scene, step: int,
+                   n: int = 3) -> None:
+        """Write render | ground truth of the first ``n`` test views to TensorBoard (``<run>/tb``, eval/)."""
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run_dir / "tb"))
+        try:
+            for i, v in enumerate(scene.test[:n]):
+                img = rasterizer.render(model.splats(v.camera), v.camera, scene.background).color.clamp(0, 1)
+                writer.add_image(f"eval/test_{i}", torch.cat([img, v.image], dim=1).cpu(), step, dataformats="HWC")
+        finally:
+            writer.close()
+
     @staticmethod
     def _per_frame(per_view: list[dict]) -> list[dict]:
         """Mean PSNR/SSIM of the test views of each time (dynamic scenes)."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from pathlib import Path
 
 import torch
@@ -11,7 +12,15 @@ from src.data.base import Scene
 from src.data.hull import sample_hull
 
 
-class HullInit:
+class Initialiser(ABC):
+    """Initial canonical splat centres for a scene (normalised coordinates, [N, 3])."""
+
+    @abstractmethod
+    def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
+        """[N, 3] initial centres, drawn with ``generator``."""
+
+
+class HullInit(Initialiser):
     """Points uniform inside the visual hull of the training masks (the paper's protocol).
 
     Args:
@@ -42,7 +51,7 @@ class HullInit:
         return sample_hull(self.n_points, cams, masks, lo, hi, generator, self.threshold)
 
 
-class BoxInit:
+class BoxInit(Initialiser):
     """Points uniform in the cube [-box, box]^3 (3DGS random init for synthetic scenes)."""
 
     def __init__(self, n_points: int = 100_000, box: float = 1.0) -> None:
@@ -53,7 +62,7 @@ class BoxInit:
         return (torch.rand(self.n_points, 3, generator=generator) * 2 - 1) * self.box
 
 
-class FromRunInit:
+class FromRunInit(Initialiser):
     """Splat centres of a finished 3DGS run (the paper's two-stage Blender protocol).
 
     Reads ``<run_dir>/splats.ply`` (written by every run at the end of training), keeps points inside

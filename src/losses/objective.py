@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import torch
 from torch import Tensor
 
@@ -10,7 +12,16 @@ from src.data.base import View
 from src.losses.ssim import ssim
 
 
-class SplatLoss:
+class Objective(ABC):
+    """A training objective over the renders of one step."""
+
+    @abstractmethod
+    def __call__(self, renders: list[RenderOutput], views: list[View], splats: list[Splats],
+                 iteration: int = 0) -> dict[str, Tensor]:
+        """Loss terms by name, including ``total`` (the value that is back-propagated)."""
+
+
+class SplatLoss(Objective):
     """L = (1 - l1) L1 + l1 D-SSIM + l2 L_mask + l3 L_norm [+ l_moran L_Moran], averaged over views.
 
     Args:
