@@ -43,7 +43,8 @@ class HullInit(Initialiser):
             first = min(v.camera.frame_id for v in views)
             views = [v for v in views if v.camera.frame_id == first]
         if any(v.mask is None for v in views):
-            raise ValueError(f"init=hull needs masks, but scene {scene.name} has training views without one")
+            raise ValueError(f"init=hull needs masks, but scene {scene.name} has training views without one: "
+                             "use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
         lo = torch.full((3,), -self.box, dtype=torch.float64)
         hi = torch.full((3,), self.box, dtype=torch.float64)
         cams = [v.camera.to("cpu") for v in views]
