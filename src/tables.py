@@ -11,15 +11,16 @@ directory missing, without any metrics.json, or with no readable record).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from src.reporting import load, make_tables, resolve_spec
 from src.reporting.aggregate import build_report
 from src.reporting.collect import find_metrics_files
 from src.reporting.render import FORMATS, render
+from src.utils.record import atomic_write_text
 
 __all__ = ["main", "make_tables"]
 
@@ -47,15 +48,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         metavar="TAB",
         help="append the paper's rows for systems not run: a table (C.1 … C.6) or, bare, chosen by dataset",
     )
+    parser.add_argument("--no-quoted", action="store_true", help="drop the report block's quoted paper rows")
     parser.add_argument("--chart", action="store_true", help="write speed × accuracy chart.png / chart.svg")
     return parser.parse_args(argv)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -79,6 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         spec = resolve_spec(None, collection).with_overrides(
             rows=args.rows, cols=args.cols, metrics=args.metrics, quoted=args.quoted
         )
+        if args.no_quoted:
+            spec = replace(spec, quoted=None)
     except ValueError as exc:
         print(f"error: bad report block: {exc}", file=sys.stderr)
         return 2
@@ -87,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(text, end="")
     if args.out is not None:
         path = args.out / f"table.{args.format}"
-        _write_atomic(path, text)
+        atomic_write_text(path, text)
         print(f"wrote {path}", file=sys.stderr)
     if args.chart:
         from src.reporting.chart import make_chart  # matplotlib is only imported when charting
