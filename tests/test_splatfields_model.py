@@ -30,7 +30,7 @@ def _model(overrides: list[str], n: int = 200, n_frames: int = 1, seed: int = 0)
 
 
 def test_static_model_bakes_to_the_same_image():
-    model, _ = _model(["+experiment=splatfields3d"])
+    model, _ = _model(["+experiment=splatfields3d", "scale=paper"])  # B.2 sizes (160x160 planes)
     cam = random_camera(32, 32, seed=1)
     rast = TorchRefRasterizer()
     with torch.no_grad():
