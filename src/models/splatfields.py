@@ -123,9 +123,7 @@ class SplatFieldsModel(SplatModel):
         """Evaluate the fields once and return a plain splat set (exact for view-independent colour)."""
         if getattr(self.network, "view_dependent", False):
             raise NotImplementedError("view-dependent colour cannot be baked into RGB splats exactly")
-        cam = Camera(torch.eye(4), 1.0, 1.0, 0.0, 0.0, 1, 1, time=time, frame_id=frame_id)
-        cam.world_to_cam[2, 3] = 10.0  # any camera: colour does not depend on it
-        out = self._predict(cam.to(device=self.canonical.device), self.network.prepare())
+        out = self.network(self.canonical, self.base_scale, frame_id=frame_id, time=time, state=self.network.prepare())
         return Splats(means=out["means"].clone(), scales=out["scales"].clone(),
                       quats=torch.nn.functional.normalize(out["quats"], dim=-1), opacities=out["opacities"].clone(),
                       colors=out["colors"].clone())

@@ -56,14 +56,10 @@ def composite_tile(
 class TorchRefRasterizer(Rasterizer):
     """Reference rasterizer in pure PyTorch with autograd backward.
 
-    Args:
-        max_pairs_per_chunk: pixel x splat pairs evaluated at once per tile (bounds peak memory).
+    Peak memory is O(pairs): every (pixel, splat) pair of a tile's list is materialised.
     """
 
     name = "torch_ref"
-
-    def __init__(self, max_pairs_per_chunk: int = 4_000_000) -> None:
-        self.max_pairs_per_chunk = max_pairs_per_chunk
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
         """Render splats (see :class:`Rasterizer`). Differentiable via autograd."""
@@ -86,8 +82,6 @@ class TorchRefRasterizer(Rasterizer):
         rects = tile_rects(proj.means2d.detach()[order] - 0.5, proj.radii[order], W, H)
 
         gx, gy = math.ceil(W / TILE), math.ceil(H / TILE)
-        out = torch.zeros(H, W, C + 1, device=device, dtype=dtype)
-        t_final = torch.ones(H, W, device=device, dtype=dtype)
         out_rows = []
         t_rows = []
         for ty in range(gy):
@@ -113,9 +107,8 @@ class TorchRefRasterizer(Rasterizer):
                 row_t.append(tt.reshape(y1 - y0, x1 - x0))
             out_rows.append(torch.cat(row_feats, dim=1))
             t_rows.append(torch.cat(row_t, dim=1))
-        if out_rows:
-            out = torch.cat(out_rows, dim=0)
-            t_final = torch.cat(t_rows, dim=0)
+        out = torch.cat(out_rows, dim=0)  # [H, W, C + 1]
+        t_final = torch.cat(t_rows, dim=0)  # [H, W]
         color = out[..., :C] + t_final[..., None] * background
         return RenderOutput(
             color=color,

@@ -60,13 +60,17 @@ class Trainer:
         self.guard_cfg = dict(guard or {})
 
     # -- view sampling -----------------------------------------------------------------------
-    def sample_views(self, scene: Scene, rng: random.Random) -> list[View]:
-        """Random training views for one step: one random frame, then up to ``views_per_step`` of its views."""
+    @staticmethod
+    def views_by_frame(scene: Scene) -> list[list[View]]:
+        """Training views grouped by frame id, in frame order (one group for static scenes)."""
         by_frame: dict[int, list[View]] = defaultdict(list)
         for v in scene.train:
             by_frame[v.camera.frame_id].append(v)
-        frames = sorted(by_frame)
-        views = by_frame[frames[rng.randrange(len(frames))]]
+        return [by_frame[f] for f in sorted(by_frame)]
+
+    def sample_views(self, groups: list[list[View]], rng: random.Random) -> list[View]:
+        """Random training views for one step: one random frame, then up to ``views_per_step`` of its views."""
+        views = groups[rng.randrange(len(groups))]
         k = min(self.views_per_step, len(views))
         return rng.sample(views, k)
 
@@ -173,8 +177,9 @@ class Trainer:
         bar = tqdm(range(start, self.iterations), disable=not self.progress, dynamic_ncols=True,
                    desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
         psnr_val = math.nan
+        groups = self.views_by_frame(scene)
         for it in bar:
-            views = self.sample_views(scene, rng)
+            views = self.sample_views(groups, rng)
             step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
                                    scene.background)
             terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
