@@ -42,3 +42,27 @@ def test_from_run_reads_the_ply_filters_to_the_hull_and_subsamples(scene, tmp_pa
 def test_from_run_without_artefact_names_the_command(scene, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"python -m src.run \+experiment=gs3d"):
         FromRunInit(run_dir=str(tmp_path / "missing"))(scene, torch.Generator())
+
+
+def _two_frame_scene(scene):
+    """``scene`` as a 2-frame sequence whose subject at frame 1 sits elsewhere (masks mirrored)."""
+    from dataclasses import replace
+
+    moved = [replace(v, camera=replace(v.camera, frame_id=1, time=1.0), mask=v.mask.flip(1),
+                     image=v.image.flip(1)) for v in scene.train]
+    return replace(scene, train=scene.train + moved, n_frames=2)
+
+
+def test_dynamic_hull_first_frame_or_union_of_frames(scene):
+    seq = _two_frame_scene(scene)
+    cams = [v.camera for v in scene.train]
+    in0 = lambda p: inside_hull(p.double(), cams, [v.mask for v in scene.train])  # noqa: E731
+    in1 = lambda p: inside_hull(p.double(), cams, [v.mask.flip(1) for v in scene.train])  # noqa: E731
+    first = HullInit(n_points=400, first_frame_only=True)(seq, torch.Generator().manual_seed(0))
+    assert first.shape == (400, 3) and in0(first).all()
+    union = HullInit(n_points=401, first_frame_only=False)(seq, torch.Generator().manual_seed(0))
+    assert union.shape == (401, 3)
+    assert (in0(union) | in1(union)).all()
+    # split evenly over the frames (201 + 200 points), each part inside its own frame's hull
+    assert in0(union[:201]).all() and in1(union[201:]).all()
+    assert (in1(union) & ~in0(union)).any()

@@ -27,7 +27,10 @@ class HullInit(Initialiser):
         n_points: number of points (reference: 100k; CPU scale: fewer).
         threshold: a point is inside a mask where mask > threshold (reference: 0).
         box: half-size of the cube the points are drawn from (the normalised scene is in [-1, 1]^3).
-        first_frame_only: for dynamic scenes use only the training views at frame 0 (reference).
+        first_frame_only: dynamic scenes: True = the hull of frame 0 (reference; right when the subject
+            stays in place, as in OwlII); False = the union of the per-frame hulls, ``n_points`` split
+            evenly over the frames (for subjects that travel further than their own width, where
+            splats of frame 0 never overlap later frames and their gradients only fade them out).
     """
 
     def __init__(self, n_points: int = 100_000, threshold: float = 0.0, box: float = 1.0,
@@ -39,17 +42,23 @@ class HullInit(Initialiser):
 
     def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
         views = scene.train
-        if scene.is_dynamic and self.first_frame_only:
-            first = min(v.camera.frame_id for v in views)
-            views = [v for v in views if v.camera.frame_id == first]
         if any(v.mask is None for v in views):
             raise ValueError(f"init=hull needs masks, but scene {scene.name} has training views without one: "
                              "use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
+        frames = sorted({v.camera.frame_id for v in views})
+        if scene.is_dynamic and self.first_frame_only:
+            frames = frames[:1]
+        counts = [self.n_points // len(frames) + (i < self.n_points % len(frames)) for i in range(len(frames))]
+        return torch.cat([self._sample(n, [v for v in views if v.camera.frame_id == f], generator)
+                          for f, n in zip(frames, counts, strict=True) if n > 0])
+
+    def _sample(self, n: int, views: list, generator: torch.Generator) -> Tensor:
+        """[n, 3] points inside the visual hull of ``views`` (one frame's training views)."""
         lo = torch.full((3,), -self.box, dtype=torch.float64)
         hi = torch.full((3,), self.box, dtype=torch.float64)
         cams = [v.camera.to("cpu") for v in views]
         masks = [v.mask.cpu() for v in views]
-        return sample_hull(self.n_points, cams, masks, lo, hi, generator, self.threshold)
+        return sample_hull(n, cams, masks, lo, hi, generator, self.threshold)
 
 
 class BoxInit(Initialiser):
