@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import torch
@@ -50,11 +51,14 @@ class SplatOptimizer:
         betas: Adam betas.
         extent: scene extent for schedules with ``scale_by_extent``.
         lr_scale_steps: multiply every schedule's ``max_steps`` by this (CPU-scale runs shorten them).
+        fused: use torch's fused Adam kernel (same update to float rounding; on the CPU 4.5x faster
+            than the default per-tensor loop over SplatFields4D's 8.5M ResField parameters, measured
+            in one run). Falls back to the loop, with a warning, where torch has no fused kernel.
     """
 
     def __init__(self, groups: list[dict], lr: dict, eps: float = 1e-15,
                  betas: tuple[float, float] = (0.9, 0.999), extent: float = 1.0,
-                 lr_scale_steps: float = 1.0) -> None:
+                 lr_scale_steps: float = 1.0, fused: bool = True) -> None:
         self.schedules: dict[str, LRSchedule] = {}
         torch_groups = []
         for g in groups:
@@ -67,7 +71,12 @@ class SplatOptimizer:
             self.schedules[name] = sched
             torch_groups.append({"name": name, "params": list(g["params"]), "lr": sched(0, extent)})
         self.extent = extent
-        self.optimizer = torch.optim.Adam(torch_groups, lr=0.0, eps=eps, betas=tuple(betas))
+        try:
+            self.optimizer = torch.optim.Adam(torch_groups, lr=0.0, eps=eps, betas=tuple(betas),
+                                              fused=fused or None)
+        except RuntimeError as e:  # e.g. an old torch without the CPU kernel
+            warnings.warn(f"optim.fused=true unavailable ({e}); using the per-tensor Adam loop", stacklevel=2)
+            self.optimizer = torch.optim.Adam(torch_groups, lr=0.0, eps=eps, betas=tuple(betas))
 
     def set_step(self, step: int) -> dict[str, float]:
         """Apply every schedule at ``step``; returns {name: lr}."""
