@@ -19,7 +19,8 @@ import sys
 import time
 from pathlib import Path
 
-METHODS = ("gs3d", "splatfields3d", "sf_mlp")
+METHODS = ("gs3d", "splatfields3d", "sf_mlp", "deformable3dgs", "owl_4view")
+BENCH_FRAMES = 24  # frames of the shipped multi-view sequences (dynamic methods size their ResFields by it)
 SIZES = (10_000, 50_000)
 PARTS = ("field", "rasterizer", "backward", "optimizer")
 
@@ -37,8 +38,11 @@ def _rss_peak_mb() -> float:
 def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
             rasterizer: str = "auto") -> dict:
     """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process)."""
+    from dataclasses import replace
+
     import torch
     from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
 
     import src.run  # noqa: F401 - registers ${repo:}
     from src.core.cameras import Camera, look_at
@@ -51,11 +55,16 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config_name="config", overrides=[f"+experiment={method}", f"rasterizer={rasterizer}"])
+    # Time the phase that dominates training: dynamic models at one of BENCH_FRAMES frames, with the
+    # deformation on (Deformable-3DGS keeps it off during its warm-up; the warm-up is skipped here).
+    dynamic = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or "warm_up" in cfg.model
+    if "warm_up" in cfg.model:
+        cfg.model.warm_up = 0
     g = torch.Generator().manual_seed(0)
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
 
-    model = build(cfg.model, init=pts, n_frames=1)
+    model = build(cfg.model, init=pts, n_frames=BENCH_FRAMES if dynamic else 1)
     rasterizer = build(cfg.rasterizer)
     loss_fn = build(cfg.loss)
     optimizer = build(cfg.optim)(groups=model.param_groups(), extent=4.0)
@@ -63,6 +72,8 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     w2c = look_at(torch.tensor([0.0, -4.0, 1.0]), torch.zeros(3))
     cam = Camera(w2c, f, f, width / 2, width / 2, width, width)
     target = torch.rand(width, width, 3, generator=g)
+    if dynamic:
+        cam = replace(cam, frame_id=BENCH_FRAMES // 2, time=0.5)
     view = View(camera=cam, image=target, mask=(target[..., 0] > 0.5).float(), image_id=0)
     guard = DivergenceGuard(check_grads=False, collapse_psnr=-math.inf)
     times: dict[str, list[float]] = {k: [] for k in PARTS}
