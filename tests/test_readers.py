@@ -252,6 +252,14 @@ def test_blender_mv_camera_selection(written):
     assert a.meta["train_cameras"] == b.meta["train_cameras"] and len(a.meta["train_cameras"]) == 3
     assert len(a.train) == 12
     assert len(load("blender_mv", root, normalise=False).meta["train_cameras"]) == 6
+    # a protocol list for this view count wins over K-means (every method sees the same cameras) ...
+    p = load("blender_mv", root, n_views=3, normalise=False, protocol_cameras={3: [0, 2, 5]})
+    assert p.meta["train_cameras"] == [0, 2, 5]
+    # ... an inconsistent one is refused, naming the key, and one naming absent cameras falls back to K-means
+    with pytest.raises(ValueError, match=r"protocol_cameras\[3\]"):
+        load("blender_mv", root, n_views=3, normalise=False, protocol_cameras={3: [0, 2]})
+    q = load("blender_mv", root, n_views=3, normalise=False, protocol_cameras={3: [0, 2, 9]})
+    assert q.meta["train_cameras"] == a.meta["train_cameras"]
 
 
 def test_blender_mv_frames_and_test_subsets(written):

@@ -19,6 +19,8 @@ cameras; each (camera, frame) at most once.
 
 from __future__ import annotations
 
+import logging
+
 from dataclasses import replace
 from pathlib import Path
 
@@ -38,6 +40,8 @@ from src.data.dnerf import (
 )
 from src.data.normalise import cameras_extent
 from src.data.views import select_views
+
+log = logging.getLogger(__name__)
 
 #: The ResFields / SplatFields 4-view protocol on OwlII-like rigs of 10 training cameras.
 RESFIELDS_4_VIEWS = [1, 3, 6, 8]
@@ -82,12 +86,15 @@ class BlenderMVDataset(DatasetReader):
         n_test: then keep this many evenly strided test views (None = all).
         normalise: fit the union of the per-frame visual hulls of the training masks into [-0.9, 0.9]^3.
         hull_min_views: views per hull group (frames are merged until a group has that many).
+        protocol_cameras: {n_views: camera ids} used when ``camera_ids`` is None, so that every method
+            trained with ``n_views`` = 4 sees the ResFields cameras (1, 3, 6, 8), not a K-means choice.
     """
 
     def __init__(self, root: str, n_views: int | None = None, camera_ids: list[int] | None = None,
                  downscale: float = 1.0, background: str | list[float] = "white", view_seed: int = 0,
                  frames: int | None = None, n_test_frames: int | None = None, n_test: int | None = None,
-                 normalise: bool = True, hull_min_views: int = 2) -> None:
+                 normalise: bool = True, hull_min_views: int = 2,
+                 protocol_cameras: dict | None = None) -> None:
         self.root = check_root(root)
         if downscale <= 0:
             raise ValueError(f"dataset.downscale={downscale} must be > 0")
@@ -103,10 +110,22 @@ class BlenderMVDataset(DatasetReader):
         self.n_test = n_test
         self.normalise = normalise
         self.hull_min_views = int(hull_min_views)
+        self.protocol_cameras = {int(k): [int(c) for c in v] for k, v in (protocol_cameras or {}).items()}
 
     def select_cameras(self, recs: list[dict]) -> list[int]:
-        """Training camera ids: ``camera_ids`` if given, else K-means on the camera centres."""
+        """Training camera ids: ``camera_ids`` if given, else ``protocol_cameras[n_views]`` if listed,
+        else K-means on the camera centres."""
         available = sorted({r["camera_id"] for r in recs})
+        if self.camera_ids is None and self.n_views in self.protocol_cameras:
+            chosen = self.protocol_cameras[self.n_views]
+            if len(set(chosen)) != self.n_views:
+                raise ValueError(f"dataset.protocol_cameras[{self.n_views}]={chosen}: expected {self.n_views} "
+                                 "distinct camera ids")
+            if set(chosen) <= set(available):
+                return sorted(chosen)
+            log.warning("dataset.protocol_cameras[%d]=%s: not all among the training cameras %s of %s; "
+                        "choosing %d cameras by K-means instead", self.n_views, chosen, available, self.root,
+                        self.n_views)
         if self.camera_ids is not None:
             missing = sorted(set(self.camera_ids) - set(available))
             if missing:
