@@ -2,8 +2,13 @@
 
 For every (image width W, splat count N) it times one full differentiable render (projection,
 rasterization, a loss over colour/alpha/depth, backward to all splat parameters) of ``torch_ref``,
-``cpu`` and, on CUDA machines with gsplat installed, ``gsplat``, with interleaved repetitions in one
-process. It also reports:
+``cpu`` (fused C++ projection, the default), ``cpu_torch_proj`` (the same compiled rasterizer with
+the torch-autograd projection, i.e. ``CpuRasterizer(projection="torch")``) and, on CUDA machines
+with gsplat installed, ``gsplat``, with interleaved repetitions in one process. It also reports:
+
+* ``proj_ms`` / ``proj_ms_min``: median / min time of the projection alone (forward + backward of
+  means2d, conics and depths with fixed random output gradients) for ``torch``
+  (:func:`project_splats`) and ``fused`` (:func:`project_splats_fused`), timed in the same loop;
 
 * ``contrib_pairs``: (pixel, splat) pairs that actually blend (alpha >= 1/255, before termination),
   counted by the cpu kernel;
@@ -42,12 +47,14 @@ from torch import Tensor
 from src.core.cameras import Camera, look_at
 from src.core.splats import Splats
 from src.rasterizer.base import Rasterizer
-from src.rasterizer.projection import TILE, project_splats, tile_rects
+from src.rasterizer.projection import TILE, Projected, project_splats, tile_rects
+from src.rasterizer.projection_cpu import project_splats_fused
 
 FLOPS_PER_PAIR = 132  # fwd ~42 + bwd ~90 FLOP per blended (pixel, splat) pair
 ATTRS = ("means", "scales", "quats", "opacities", "colors")
 FULL_SIZES = [(w, n) for w in (100, 200, 400) for n in (10_000, 50_000, 200_000)]
 QUICK_SIZES = [(100, 10_000)]
+PROJECTIONS: dict[str, Callable[..., Projected]] = {"torch": project_splats, "fused": project_splats_fused}
 
 
 def _rotmat_to_quat(R: Tensor) -> Tensor:
@@ -186,6 +193,16 @@ def _fwd_bwd(rast: Rasterizer, splats: Splats, cam: Camera, loss: _Loss, bg: Ten
     return time.perf_counter() - t, {k: params[k].grad for k in ATTRS}
 
 
+def _proj_fwd_bwd(project: Callable[..., Projected], splats: Splats, cam: Camera,
+                  out_grads: tuple[Tensor, Tensor, Tensor]) -> float:
+    """Seconds for one projection forward + backward to means, quats and scales."""
+    params = [getattr(splats, k).detach().clone().requires_grad_(True) for k in ("means", "quats", "scales")]
+    t = time.perf_counter()
+    p = project(*params, cam)
+    torch.autograd.backward([p.means2d, p.conics, p.depths], list(out_grads))
+    return time.perf_counter() - t
+
+
 class _GsplatRasterizer(Rasterizer):
     """gsplat on CUDA with matching settings (only when CUDA and gsplat are available)."""
 
@@ -213,7 +230,8 @@ def _rasterizers() -> dict[str, Rasterizer]:
     from src.rasterizer.cpu import CpuRasterizer
     from src.rasterizer.torch_ref import TorchRefRasterizer
 
-    out: dict[str, Rasterizer] = {"torch_ref": TorchRefRasterizer(), "cpu": CpuRasterizer()}
+    out: dict[str, Rasterizer] = {"torch_ref": TorchRefRasterizer(), "cpu": CpuRasterizer(),
+                                  "cpu_torch_proj": CpuRasterizer(projection="torch")}
     if torch.cuda.is_available():
         try:
             import gsplat  # noqa: F401
@@ -254,6 +272,11 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
         if run_ref:
             names = ["torch_ref", *names]
         times: dict[str, list[float]] = {k: [] for k in names}
+        g = torch.Generator().manual_seed(seed)
+        out_grads = (torch.randn(n, 2, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g))
+        proj_times: dict[str, list[float]] = {k: [] for k in PROJECTIONS}
+        for project in PROJECTIONS.values():  # warm-up
+            _proj_fwd_bwd(project, splats, cam, out_grads)
         grads_ref = None
         for k in names:  # warm-up (also the reference gradients)
             dt, grads = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
@@ -268,6 +291,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
                     continue
                 dt, _ = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
                 times[k].append(dt)
+            for k, project in PROJECTIONS.items():
+                proj_times[k].append(_proj_fwd_bwd(project, splats, cam, out_grads))
         stages = rasts["cpu"].last_stats  # stage times of the last timed cpu run
         floor_ms = contrib * FLOPS_PER_PAIR / (peak * 1e9) * 1e3
         ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
@@ -282,6 +307,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             "ms": ms,
             "ms_min": ms_min,
             "speedup_vs_ref": (ms["torch_ref"] / ms["cpu"]) if "torch_ref" in ms else None,
+            "proj_ms": {k: 1e3 * statistics.median(v) for k, v in proj_times.items()},
+            "proj_ms_min": {k: 1e3 * min(v) for k, v in proj_times.items()},
             "floor_ms": floor_ms,
             "x_floor": {k: v / floor_ms if floor_ms > 0 else None for k, v in ms.items()},
             "grad_rel_err": err,
@@ -309,6 +336,7 @@ def _format_row(r: dict) -> str:
     for k in ms:
         parts.append(f"{k} {ms[k]:8.1f} ms (min {mn[k]:7.1f}, {r['x_floor'][k]:6.0f}x floor)")
     parts.append(f"speedup {_fmt(r['speedup_vs_ref'], '.0f')}x")
+    parts.append("proj " + " ".join(f"{k} {v:.2f} ms" for k, v in r.get("proj_ms", {}).items()))
     parts.append(f"floor {r['floor_ms']:.3f} ms")
     parts.append(f"contrib {r['contrib_pairs'] / 1e6:.2f}M eval {r['eval_pairs_fwd'] / 1e6:.1f}M")
     parts.append(f"grad err {_fmt(r['grad_rel_err'], '.1e')}")
@@ -322,13 +350,21 @@ def format_table(result: dict) -> str:
         for k in r["ms"]:
             if k not in names:
                 names.append(k)
-    head = ["W", "N", *[f"{k} ms med (min)" for k in names], "contrib pairs", "floor ms",
-            *[f"{k} x floor" for k in names], "cpu vs ref", "grad rel err"]
+    projs = []
+    for r in result["rows"]:
+        for k in r.get("proj_ms", {}):
+            if k not in projs:
+                projs.append(k)
+    head = ["W", "N", *[f"{k} ms med (min)" for k in names], *[f"proj {k} ms med (min)" for k in projs],
+            "contrib pairs", "floor ms", *[f"{k} x floor" for k in names], "cpu vs ref", "grad rel err"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in result["rows"]:
         cells = [str(r["width"]), f"{r['n_splats'] // 1000}k"]
         for k in names:
             cells.append(f"{r['ms'][k]:.1f} ({r['ms_min'][k]:.1f})" if k in r["ms"] else "skip")
+        for k in projs:
+            pm, pn = r.get("proj_ms", {}), r.get("proj_ms_min", {})
+            cells.append(f"{pm[k]:.2f} ({pn[k]:.2f})" if k in pm else "-")
         cells += [f"{r['contrib_pairs'] / 1e6:.2f}M", f"{r['floor_ms']:.3f}"]
         for k in names:
             cells.append(f"{r['x_floor'][k]:.0f}x" if k in r["x_floor"] else "-")

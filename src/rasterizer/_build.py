@@ -1,25 +1,31 @@
-"""JIT build and loading of the C++/OpenMP CPU rasterizer extension.
+"""JIT build and loading of the C++/OpenMP CPU extensions (rasterizer and fused projection).
 
-The extension is compiled with ``torch.utils.cpp_extension.load`` on first use (about 30-60 s on
-2 cores) into a persistent cache directory keyed by a hash of the sources, compiler flags, torch and
-Python versions:
+Two shared objects are compiled with ``torch.utils.cpp_extension.load`` on first use (about 30-60 s
+on 2 cores in total) into a persistent cache directory keyed by a hash of the sources, compiler
+flags, torch and Python versions:
 
     $SPLATFIELDS_EXT_DIR  or  ${XDG_CACHE_HOME:-~/.cache}/splatfields/ext
-        /rasterize_cpu_<hash>/
+        /rasterize_cpu_<hash>/   csrc/rasterize_cpu.cpp (+ simd.h): sort, binning, compositing
+        /project_cpu_<hash>/     csrc/project_cpu.cpp: EWA projection forward/backward
 
-so later processes only load the shared object. torch's loader holds a file lock in that directory
-while compiling, so concurrent processes (e.g. pytest-xdist workers) build once. Importing this
-module does not build anything; call :func:`load_extension`.
+so later processes only load the shared objects. torch's loader holds a file lock in each
+directory while compiling, so concurrent processes (e.g. pytest-xdist workers) build once.
+Importing this module does not build anything; call :func:`load_extension`.
 
 The C++ side includes only light ATen headers and registers its functions with ``TORCH_LIBRARY``
-(namespace ``splatfields_cpu``), which keeps the first build near 15-30 s instead of ~1 min with
-``torch/extension.h``; they are called as ``torch.ops.splatfields_cpu.<name>``.
+/ ``TORCH_LIBRARY_FRAGMENT`` (one namespace, ``splatfields_cpu``, for both objects), which keeps
+the first build near 15-30 s instead of ~1 min with ``torch/extension.h``; they are called as
+``torch.ops.splatfields_cpu.<name>``.
 
-Flags: ``-O3 -ffast-math -fno-finite-math-only -ffp-contract=off -fopenmp`` plus ``-mavx2 -mfma``
-when /proc/cpuinfo reports both (portable: never ``-march=native``; ``SPLATFIELDS_NO_AVX2=1`` forces
-the generic-vector build, e.g. to test it). ``-fno-finite-math-only``
+Rasterizer flags: ``-O3 -ffast-math -fno-finite-math-only -ffp-contract=off -fopenmp`` plus
+``-mavx2 -mfma`` when /proc/cpuinfo reports both (portable: never ``-march=native``;
+``SPLATFIELDS_NO_AVX2=1`` forces the generic-vector build, e.g. to test it). ``-fno-finite-math-only``
 keeps inf/NaN comparisons meaningful in the culling code; ``-ffp-contract=off`` makes every fused
 multiply-add explicit so the forward and backward evaluate identical alphas.
+
+Projection flags: the same without ``-ffast-math`` (strict IEEE, no reassociation, no reciprocal
+rewriting of divisions, no contraction into FMAs), so the fused projection repeats the torch
+projection's float operations bit for bit.
 """
 
 from __future__ import annotations
@@ -40,6 +46,9 @@ HEADERS = [CSRC / "simd.h"]
 BASE_CFLAGS = ["-O3", "-ffast-math", "-fno-finite-math-only", "-ffp-contract=off", "-fopenmp"]
 SIMD_CFLAGS = ["-mavx2", "-mfma"]
 LDFLAGS = ["-fopenmp"]
+# fused projection: strict IEEE (bit-identical to the torch projection), its own shared object
+PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
+PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 
 OPS_NAMESPACE = "splatfields_cpu"
 
@@ -78,10 +87,19 @@ def cache_root() -> Path:
     return base / "splatfields" / "ext"
 
 
-def build_key(flags: list[str]) -> str:
-    """Hash of the sources, flags and toolchain versions (a new key means a fresh build)."""
+def projection_compile_flags() -> list[str]:
+    """The C++ flags of the fused projection on this machine (strict IEEE, see the module doc)."""
+    use_simd = cpu_has_avx2_fma() and os.environ.get("SPLATFIELDS_NO_AVX2", "0") in ("", "0")
+    return PROJ_CFLAGS + (SIMD_CFLAGS if use_simd else [])
+
+
+def build_key(flags: list[str], sources: list[Path] | None = None) -> str:
+    """Hash of the sources, flags and toolchain versions (a new key means a fresh build).
+
+    ``sources`` defaults to the rasterizer's sources and headers.
+    """
     h = hashlib.sha256()
-    for path in SOURCES + HEADERS:
+    for path in sources if sources is not None else SOURCES + HEADERS:
         h.update(path.name.encode())
         h.update(path.read_bytes())
     h.update(" ".join(flags + LDFLAGS).encode())
@@ -96,12 +114,39 @@ def build_directory() -> Path:
     return cache_root() / f"rasterize_cpu_{build_key(compile_flags())}"
 
 
+def _load_unit(name: str, sources: list[Path], deps: list[Path], flags: list[str], verbose: bool) -> None:
+    """Build (if needed) and load one shared object into the process (it registers its ops)."""
+    from torch.utils import cpp_extension
+
+    key = build_key(flags, sources + deps)
+    build_dir = cache_root() / f"{name}_{key}"
+    build_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        cpp_extension.load(
+            name=f"splatfields_{name}_{key}",
+            sources=[str(p) for p in sources],
+            extra_cflags=list(flags),  # copies: torch appends to the lists it is given
+            extra_ldflags=list(LDFLAGS),
+            extra_include_paths=[str(CSRC)],
+            build_directory=str(build_dir),
+            verbose=verbose,
+            is_python_module=False,
+        )
+    except Exception as exc:  # compiler missing, ninja missing, compile error
+        raise RuntimeError(
+            f"Building the CPU extension {name} failed ({type(exc).__name__}: {exc}). "
+            "It needs g++ with OpenMP and the `ninja` package; the build directory is "
+            f"{build_dir}. Use rasterizer=torch_ref as a slow fallback."
+        ) from exc
+
+
 def load_extension(verbose: bool = False) -> Any:
-    """Compile (if needed) and load the extension; cached per process and on disk.
+    """Compile (if needed) and load both extensions; cached per process and on disk.
 
     Returns:
-        The ``torch.ops.splatfields_cpu`` namespace (``forward``, ``backward``, ``fast_exp``,
-        ``depth_order``, ``has_avx2``).
+        The ``torch.ops.splatfields_cpu`` namespace (rasterizer: ``forward``, ``backward``,
+        ``fast_exp``, ``depth_order``, ``has_avx2``; projection: ``project_forward``,
+        ``project_backward``).
 
     Raises:
         RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
@@ -112,28 +157,7 @@ def load_extension(verbose: bool = False) -> Any:
     with _lock:
         if _module is not None:
             return _module
-        from torch.utils import cpp_extension
-
-        flags = compile_flags()
-        key = build_key(flags)
-        build_dir = cache_root() / f"rasterize_cpu_{key}"
-        build_dir.mkdir(parents=True, exist_ok=True)
-        try:
-            cpp_extension.load(
-                name=f"splatfields_rasterize_cpu_{key}",
-                sources=[str(p) for p in SOURCES],
-                extra_cflags=flags,
-                extra_ldflags=LDFLAGS,
-                extra_include_paths=[str(CSRC)],
-                build_directory=str(build_dir),
-                verbose=verbose,
-                is_python_module=False,
-            )
-            _module = getattr(torch.ops, OPS_NAMESPACE)
-        except Exception as exc:  # compiler missing, ninja missing, compile error
-            raise RuntimeError(
-                f"Building the CPU rasterizer extension failed ({type(exc).__name__}: {exc}). "
-                "It needs g++ with OpenMP and the `ninja` package; the build directory is "
-                f"{build_dir}. Use rasterizer=torch_ref as a slow fallback."
-            ) from exc
+        _load_unit("rasterize_cpu", SOURCES, HEADERS, compile_flags(), verbose)
+        _load_unit("project_cpu", PROJ_SOURCES, [], projection_compile_flags(), verbose)
+        _module = getattr(torch.ops, OPS_NAMESPACE)
         return _module

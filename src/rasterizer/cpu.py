@@ -2,10 +2,13 @@
 
 Same semantics as :class:`~src.rasterizer.torch_ref.TorchRefRasterizer` (the 3DGS CUDA rules; see
 :mod:`src.rasterizer`), 1-2 orders of magnitude faster and with O(pixels + splats + tile pairs)
-memory. The projection stays in torch autograd (:func:`project_splats`); the compiled part is the
-depth sort, tile binning and compositing of (means2d, conics, opacities, features) with the depth
-appended as an extra feature channel, the background term and alpha = 1 - T_final, and their
-backward (also w.r.t. the background).
+memory. Two compiled parts, each with a hand-written backward:
+
+* the EWA projection (:func:`~src.rasterizer.projection_cpu.project_splats_fused`, bit-identical
+  forward to the torch :func:`project_splats`; ``projection="torch"`` selects the latter);
+* the depth sort, tile binning and compositing of (means2d, conics, opacities, features) with the
+  depth appended as an extra feature channel, the background term and alpha = 1 - T_final (backward
+  also w.r.t. the background).
 
 The extension is built on the first render (or :func:`ensure_built`), never at import; see
 :mod:`src.rasterizer._build` for the cache location and flags.
@@ -23,6 +26,9 @@ from src.core.splats import RenderOutput, Splats
 from src.rasterizer._build import load_extension
 from src.rasterizer.base import Rasterizer
 from src.rasterizer.projection import project_splats
+from src.rasterizer.projection_cpu import project_splats_fused
+
+PROJECTIONS = ("fused", "torch")
 
 
 def ensure_built(verbose: bool = False) -> None:
@@ -114,6 +120,9 @@ class CpuRasterizer(Rasterizer):
             result (bit-identical images and gradients); False only for tests and benchmarks.
         count_pairs: count (pixel, splat) pairs that blend and evaluated vectors into
             :attr:`last_stats` (costs a few percent).
+        projection: ``"fused"`` (default): the compiled projection with its hand-written backward;
+            ``"torch"``: the elementwise torch-autograd projection (same forward bit for bit,
+            gradients equal up to float rounding; for comparisons and benchmarks).
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
@@ -125,9 +134,12 @@ class CpuRasterizer(Rasterizer):
 
     name = "cpu"
 
-    def __init__(self, cull: bool = True, count_pairs: bool = False) -> None:
+    def __init__(self, cull: bool = True, count_pairs: bool = False, projection: str = "fused") -> None:
+        if projection not in PROJECTIONS:
+            raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
         self.cull = bool(cull)
         self.count_pairs = bool(count_pairs)
+        self.projection = projection
         self._stats: Tensor | None = None
 
     def ensure_built(self, verbose: bool = False) -> None:
@@ -155,7 +167,8 @@ class CpuRasterizer(Rasterizer):
             background = torch.zeros(C, dtype=dtype)
         background = background.to(dtype=dtype)
 
-        proj = project_splats(splats.means, splats.quats, splats.scales, camera)
+        project = project_splats_fused if self.projection == "fused" else project_splats
+        proj = project(splats.means, splats.quats, splats.scales, camera)
         features = torch.cat([splats.colors, proj.depths[:, None]], dim=1).contiguous()  # [N, C + 1]
         color, alpha, depth, stats = _RasterizeFunction.apply(
             proj.means2d.contiguous(),
@@ -175,4 +188,4 @@ class CpuRasterizer(Rasterizer):
         return RenderOutput(color=color, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii)
 
     def __repr__(self) -> str:
-        return f"CpuRasterizer(cull={self.cull})"
+        return f"CpuRasterizer(cull={self.cull}, projection={self.projection!r})"

@@ -1,0 +1,105 @@
+"""Fused C++/OpenMP EWA projection with a hand-written backward (drop-in for :func:`project_splats`).
+
+:func:`project_splats_fused` returns exactly what :func:`src.rasterizer.projection.project_splats`
+returns: the forward repeats the torch projection's float operations one by one (bit-identical
+means2d, conics, depths, radii and visible in float32 and float64), and the backward is the chain
+rule of the same graph (including torch's where/clamp masks) evaluated in double, in one pass per
+splat instead of ~150 small torch kernels and their autograd graph. See csrc/project_cpu.cpp.
+
+Conventions: OpenCV camera (x right, y down, z forward; ``world_to_cam`` [4, 4]), quaternions
+(w, x, y, z) normalised inside, linear scales (standard deviations), pixel centres at i + 0.5.
+Differentiable in means, quats and scales; the camera is not differentiated (a camera whose
+``world_to_cam`` requires grad falls back to the torch projection).
+
+In float32 the backward's chain rule runs in double from the float32 forward intermediates, so its
+gradients are slightly closer to the float64 truth than torch's float32 autograd; for splats whose
+covariance overflows float32 (scales ~1e20) the two may disagree on which gradients are non-finite.
+
+The extension is built on first use (see :mod:`src.rasterizer._build`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from src.core.cameras import Camera
+from src.rasterizer._build import load_extension
+from src.rasterizer.projection import EPS2D, FRUSTUM_CLAMP, NEAR_PLANE, TILE, Projected, project_splats
+
+CamArgs = tuple[float, float, float, float, int, int, float, float, float, int]
+
+
+def _camera_args(camera: Camera) -> CamArgs:
+    """(fx, fy, cx, cy, width, height, near, clamp, eps2d, tile) as passed to the C++ ops."""
+    return (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy), int(camera.width),
+            int(camera.height), NEAR_PLANE, FRUSTUM_CLAMP, EPS2D, TILE)
+
+
+class _ProjectFunction(torch.autograd.Function):
+    """EWA projection; differentiable in means [N, 3], quats [N, 4], scales [N, 3].
+
+    Inputs: means, quats (wxyz), scales (linear), viewmat [4, 4] world-to-camera (all one dtype,
+    float32 or float64, contiguous, CPU), cam (:data:`CamArgs`).
+    Outputs: means2d [N, 2], conics [N, 3], depths [N] (differentiable), radii [N] int32,
+    visible [N] bool (not differentiable).
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor, cam: CamArgs
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        means2d, conics, depths, radii, visible = load_extension().project_forward(
+            means, quats, scales, viewmat, *cam)
+        ctx.save_for_backward(means, quats, scales, viewmat)
+        ctx.cam = cam
+        ctx.mark_non_differentiable(radii, visible)
+        return means2d, conics, depths, radii, visible
+
+    @staticmethod
+    def backward(ctx: Any, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,  # type: ignore[override]
+                 _g_radii: Tensor | None, _g_visible: Tensor | None):
+        means, quats, scales, viewmat = ctx.saved_tensors
+        dt = means.dtype
+        g_means, g_quats, g_scales = load_extension().project_backward(
+            means, quats, scales, viewmat, *ctx.cam,
+            g_means2d.to(dt).contiguous(),  # [N, 2]
+            g_conics.to(dt).contiguous(),  # [N, 3]
+            g_depths.to(dt).contiguous())  # [N]
+        return g_means, g_quats, g_scales, None, None
+
+
+def project_splats_fused(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera) -> Projected:
+    """Project 3D Gaussians into ``camera`` (3DGS EWA rules) with the compiled kernel.
+
+    Same contract and results as :func:`src.rasterizer.projection.project_splats`.
+
+    Args:
+        means: [N, 3] world centres; quats: [N, 4] (w, x, y, z), any non-zero norm; scales: [N, 3]
+            linear standard deviations. CPU, float32 or float64 (one dtype).
+        camera: OpenCV pinhole camera (``world_to_cam`` is cast to the splats' dtype as the torch
+            projection does).
+    Returns:
+        :class:`Projected`: means2d [N, 2] (pixel centres at i + 0.5), conics [N, 3], depths [N],
+        radii [N] int32 (0 if culled), visible [N] bool; differentiable in means, quats and scales.
+    Raises:
+        ValueError / TypeError: non-CPU tensors, mixed or unsupported dtypes, bad shapes.
+    """
+    if camera.world_to_cam.requires_grad:  # camera gradients: only the torch graph has them
+        return project_splats(means, quats, scales, camera)
+    dt = means.dtype
+    if dt not in (torch.float32, torch.float64):
+        raise TypeError(f"project_splats_fused supports float32/float64, got {dt}")
+    for name, t, cols in (("means", means, 3), ("quats", quats, 4), ("scales", scales, 3)):
+        if t.device.type != "cpu":
+            raise ValueError(f"project_splats_fused needs CPU tensors; {name} is on {t.device}")
+        if t.dtype != dt:
+            raise TypeError(f"{name} is {t.dtype} but means is {dt}")
+        if t.dim() != 2 or t.shape[1] != cols or t.shape[0] != means.shape[0]:
+            raise ValueError(f"{name} must be [N, {cols}] with N = {means.shape[0]}, got {tuple(t.shape)}")
+    viewmat = camera.world_to_cam.detach().to(device="cpu", dtype=dt).contiguous()  # [4, 4]
+    means2d, conics, depths, radii, visible = _ProjectFunction.apply(
+        means.contiguous(), quats.contiguous(), scales.contiguous(), viewmat, _camera_args(camera))
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, visible=visible)

@@ -1,0 +1,394 @@
+"""The fused C++ projection (src/rasterizer/projection_cpu.py) against the torch projection.
+
+* forward: bit-identical means2d, conics, depths, radii and visible (float32 and float64) on random
+  splats in every regime: behind the camera / at the near plane, beyond and exactly at the frustum
+  clamp, tiny and huge scales, unnormalised quaternions, off-screen and degenerate splats;
+* backward: equal to torch autograd of the torch projection (float64: to ~1e-12; float32: to float
+  rounding, and at least as close to the float64 truth as torch's own float32 gradients), and to
+  finite differences (``torch.autograd.gradcheck`` on the kernel in float64);
+* the rasterizer: ``CpuRasterizer(projection="fused")`` renders bit-identically to
+  ``projection="torch"`` with equal gradients (parity with torch_ref: tests/test_rasterizer_cpu.py).
+
+The first test builds the extension if needed (cached on disk).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from src.core.cameras import Camera
+from src.core.splats import Splats
+from src.rasterizer.cpu import CpuRasterizer
+from src.rasterizer.projection import FRUSTUM_CLAMP, NEAR_PLANE, Projected, project_splats
+from src.rasterizer.projection_cpu import project_splats_fused
+from tests.conftest import random_camera, random_scene
+
+OUTS = ("means2d", "conics", "depths", "radii", "visible")
+PARAMS = ("means", "quats", "scales")
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Single-threaded (shared 2-core machine); the thread-count test sets 2 threads itself."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def _same(x: torch.Tensor, y: torch.Tensor) -> bool:
+    """Bitwise-equal values (NaN == NaN), same shape and dtype."""
+    if x.shape != y.shape or x.dtype != y.dtype:
+        return False
+    eq = x == y
+    if x.is_floating_point():
+        eq = eq | (x.isnan() & y.isnan())
+    return bool(eq.all())
+
+
+def _assert_same_projection(a: Projected, b: Projected) -> None:
+    for k in OUTS:
+        x, y = getattr(a, k), getattr(b, k)
+        assert _same(x, y), f"{k}: {int((x != y).sum())} of {x.numel()} entries differ"
+
+
+def hard_scene(n: int, seed: int, dtype: torch.dtype = torch.float32) -> tuple[Splats, Camera]:
+    """Random splats in every regime of the projection (see the module docstring)."""
+    g = torch.Generator().manual_seed(seed)
+    cam = random_camera(64, 48, seed=seed, dtype=dtype)
+    s = random_scene(n, seed=seed, spread=1.5, scale_range=(0.01, 0.3), dtype=dtype)
+    u = torch.rand(n, generator=g)
+    # scales: log-uniform over 1e-7 .. 1e2, plus a few absurd ones (inf/NaN covariances)
+    s.scales = torch.exp(torch.rand(n, 3, generator=g) * math.log(1e9) + math.log(1e-7)).to(dtype)
+    s.scales[u < 0.02] *= 1e20
+    # quaternions of norm 1e-3 .. 1e3
+    s.quats = s.quats * torch.exp(torch.randn(n, 1, generator=g) * 3).to(dtype)
+    # behind the camera, at the near plane, far off-screen (clamped Jacobian)
+    eye = cam.center.to(dtype)
+    fwd = -eye / eye.norm()  # the camera looks at the origin
+    k = n // 10
+    jitter = torch.randn(2 * k, 3, generator=g).to(dtype) * 0.3
+    s.means[:k] = eye - fwd * (torch.rand(k, 1, generator=g).to(dtype) * 2) + jitter[:k]  # behind
+    s.means[k:2 * k] = eye + fwd * (torch.rand(k, 1, generator=g).to(dtype) * 0.4) + 0.1 * jitter[k:]  # near
+    side = torch.linalg.cross(fwd, torch.tensor([0.0, 0.0, 1.0], dtype=dtype))
+    s.means[2 * k:3 * k] = (eye + fwd * 0.5 + side * (torch.randn(k, 1, generator=g).to(dtype) * 3))
+    return s, cam
+
+
+def clamp_camera(dtype: torch.dtype) -> Camera:
+    """Identity pose (camera coordinates = world coordinates), off-centre principal point."""
+    return Camera(torch.eye(4, dtype=dtype), fx=80.0, fy=90.0, cx=30.25, cy=20.5, width=64, height=48)
+
+
+def clamp_scene(dtype: torch.dtype) -> tuple[Splats, Camera]:
+    """Splats whose x/z or y/z equals a frustum-clamp bound exactly, or one ulp either side of it.
+
+    With the identity pose, tx = px and tz = pz exactly, and z in {1, 2, 4} keeps x/z exact.
+    """
+    cam = clamp_camera(dtype)
+    lims = {"x+": FRUSTUM_CLAMP * (cam.width - cam.cx) / cam.fx, "x-": -FRUSTUM_CLAMP * cam.cx / cam.fx,
+            "y+": FRUSTUM_CLAMP * (cam.height - cam.cy) / cam.fy, "y-": -FRUSTUM_CLAMP * cam.cy / cam.fy}
+    pts = []
+    for name, lim in lims.items():
+        b = torch.tensor(lim, dtype=dtype)  # the bound as torch's clamp sees it
+        for v in (b, torch.nextafter(b, torch.tensor(math.inf, dtype=dtype)),
+                  torch.nextafter(b, torch.tensor(-math.inf, dtype=dtype))):
+            for z in (1.0, 2.0, 4.0):
+                p = [0.1 * z, -0.05 * z, z]
+                p[0 if name[0] == "x" else 1] = float(v) * z
+                pts.append(p)
+    n = len(pts)
+    g = torch.Generator().manual_seed(0)
+    s = Splats(means=torch.tensor(pts, dtype=dtype),
+               scales=(torch.rand(n, 3, generator=g) * 0.2 + 0.05).to(dtype),
+               quats=torch.randn(n, 4, generator=g).to(dtype),
+               opacities=torch.full((n,), 0.5, dtype=dtype), colors=torch.rand(n, 3, generator=g).to(dtype))
+    # sanity: the constructed points really sit on the bounds
+    xr = s.means[:, 0] / s.means[:, 2]
+    assert bool((xr == torch.tensor(lims["x+"], dtype=dtype)).any())
+    return s, cam
+
+
+def near_plane_scene(dtype: torch.dtype) -> tuple[Splats, Camera]:
+    """Depths exactly at the near plane, one ulp around it, at 0 and negative (identity pose)."""
+    cam = clamp_camera(dtype)
+    near = torch.tensor(NEAR_PLANE, dtype=dtype)
+    zs = [near, torch.nextafter(near, torch.tensor(1.0, dtype=dtype)),
+          torch.nextafter(near, torch.tensor(0.0, dtype=dtype)), torch.tensor(0.0, dtype=dtype),
+          torch.tensor(-0.5, dtype=dtype), torch.tensor(0.3, dtype=dtype)]
+    z = torch.stack(zs)
+    n = len(zs)
+    means = torch.stack([0.01 * torch.ones(n, dtype=dtype), -0.02 * torch.ones(n, dtype=dtype), z], -1)
+    g = torch.Generator().manual_seed(1)
+    s = Splats(means=means, scales=torch.tensor([0.01, 0.03, 0.002], dtype=dtype).repeat(n, 1),
+               quats=torch.randn(n, 4, generator=g).to(dtype), opacities=torch.full((n,), 0.5, dtype=dtype),
+               colors=torch.rand(n, 3, generator=g).to(dtype))
+    return s, cam
+
+
+def _grads(project, s: Splats, cam: Camera, seed: int = 0) -> tuple[Projected, dict[str, torch.Tensor]]:
+    """Project, backprop a random linear function of (means2d, conics, depths); return grads."""
+    p = {k: getattr(s, k).detach().clone().requires_grad_(True) for k in PARAMS}
+    out = project(p["means"], p["quats"], p["scales"], cam)
+    g = torch.Generator().manual_seed(seed)
+    dt = s.means.dtype
+    loss = sum((getattr(out, k) * torch.randn(getattr(out, k).shape, generator=g).to(dt)).sum()
+               for k in ("means2d", "conics", "depths"))
+    loss.backward()
+    return out, {k: p[k].grad for k in PARAMS}
+
+
+# ------------------------------------------------------------------------------------------------
+# forward
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_forward_bit_identical_hard_scenes(dtype: torch.dtype, seed: int):
+    s, cam = hard_scene(3000, seed, dtype)
+    ref = project_splats(s.means, s.quats, s.scales, cam)
+    got = project_splats_fused(s.means, s.quats, s.scales, cam)
+    _assert_same_projection(got, ref)
+    # the scene exercises every regime
+    vis = ref.visible
+    assert 0.2 < vis.float().mean() < 0.95
+    assert int((ref.depths <= NEAR_PLANE).sum()) > 100
+    assert int((~torch.isfinite(ref.conics).all(-1)).sum()) > 0 or dtype == torch.float64
+    assert int(ref.radii.max()) > 64 and int(ref.radii[vis].min()) <= 3  # low-pass minimum: 3
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_forward_bit_identical_at_clamp_and_near_plane(dtype: torch.dtype):
+    for s, cam in (clamp_scene(dtype), near_plane_scene(dtype)):
+        _assert_same_projection(project_splats_fused(s.means, s.quats, s.scales, cam),
+                                project_splats(s.means, s.quats, s.scales, cam))
+    s, cam = near_plane_scene(dtype)
+    vis = project_splats_fused(s.means, s.quats, s.scales, cam).visible
+    assert vis.tolist() == [False, True, False, False, False, True]  # strictly z > near
+
+
+def test_forward_standard_scenes_and_empty():
+    for seed in range(3):
+        s = random_scene(500, seed=seed)
+        cam = random_camera(40, 30, seed=seed)
+        _assert_same_projection(project_splats_fused(s.means, s.quats, s.scales, cam),
+                                project_splats(s.means, s.quats, s.scales, cam))
+    e = Splats.empty()
+    out = project_splats_fused(e.means, e.quats, e.scales, random_camera())
+    assert out.means2d.shape == (0, 2) and out.conics.shape == (0, 3) and out.radii.shape == (0,)
+
+
+def test_non_contiguous_inputs_and_float64_camera():
+    s = random_scene(200, seed=4)
+    cam = random_camera(32, 32, seed=4, dtype=torch.float64)  # cast to float32 like the torch path
+    means = s.means.t().contiguous().t()
+    quats = torch.cat([s.quats, s.quats], dim=1)[:, :4]
+    assert not means.is_contiguous() and not quats.is_contiguous()
+    _assert_same_projection(project_splats_fused(means, quats, s.scales, cam),
+                            project_splats(means.contiguous(), quats.contiguous(), s.scales, cam))
+
+
+# ------------------------------------------------------------------------------------------------
+# backward
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grads_float64_match_torch_autograd(seed: int):
+    """Same graph, both in float64: gradients agree to ~1e-12 per element (finite entries)."""
+    s, cam = hard_scene(3000, seed, torch.float64)
+    s.scales = s.scales.clamp(max=1e3)  # keep the covariances finite
+    out_r, g_ref = _grads(project_splats, s, cam, seed)
+    out_f, g_got = _grads(project_splats_fused, s, cam, seed)
+    _assert_same_projection(out_f, out_r)
+    for k in PARAMS:
+        ref, got = g_ref[k], g_got[k]
+        assert _same(torch.isfinite(ref), torch.isfinite(got)), k
+        fin = torch.isfinite(ref)
+        err = (got[fin] - ref[fin]).abs()
+        tol = 1e-10 * ref[fin].abs() + 1e-12 * ref[fin].abs().max()
+        assert bool((err <= tol).all()), f"{k}: max err {err.max():.3e}"
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grads_float32_match_torch_autograd(seed: int):
+    """float32: fused grads are within float rounding of torch's float32 autograd and at least as
+    close to the float64 autograd of the same inputs (the fused backward accumulates in double)."""
+    s, cam = hard_scene(3000, seed, torch.float32)
+    s.scales = s.scales.clamp(max=10.0)
+    _, g32 = _grads(project_splats, s, cam, seed)
+    _, g64 = _grads(project_splats, s.to(dtype=torch.float64), cam.to(dtype=torch.float64), seed)
+    _, gf = _grads(project_splats_fused, s, cam, seed)
+    for k in PARAMS:
+        err_torch32 = _rel(g32[k], g64[k])
+        err_fused = _rel(gf[k], g64[k])
+        assert _rel(gf[k], g32[k]) < 1e-5, k
+        assert err_fused <= 1.5 * err_torch32 + 1e-7, f"{k}: fused {err_fused:.2e} vs torch f32 {err_torch32:.2e}"
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_grads_at_clamp_bounds_and_near_plane(dtype: torch.dtype):
+    """Clamp backward passes at the bound itself (torch's rule), culled splats get torch's grads."""
+    for s, cam in (clamp_scene(dtype), near_plane_scene(dtype)):
+        _, g_ref = _grads(project_splats, s, cam)
+        _, g_got = _grads(project_splats_fused, s, cam)
+        tol = 1e-10 if dtype == torch.float64 else 1e-5
+        for k in PARAMS:
+            assert _rel(g_got[k], g_ref[k]) < tol, k
+
+
+def test_grads_finite_differences_float64():
+    """gradcheck of the kernel: visible, clamped (off-screen) and behind-camera splats, unnormalised
+    quaternions, anisotropic scales; all away from the clamp/near-plane kinks."""
+    s, cam = hard_scene(60, 3, torch.float64)
+    g = torch.Generator().manual_seed(3)
+    s.scales = torch.exp(torch.rand(60, 3, generator=g, dtype=torch.float64) * 4 - 5)  # 0.007 .. 0.37
+    # unnormalised, but not so small that eps = 1e-6 is a large step on the unit sphere
+    s.quats = s.quats / s.quats.norm(dim=-1, keepdim=True) * torch.exp(
+        torch.rand(60, 1, generator=g, dtype=torch.float64) * 3 - 1.5)
+    ref = project_splats(s.means, s.quats, s.scales, cam)
+    tz, uv = ref.depths, ref.means2d
+    assert int((tz <= NEAR_PLANE).sum()) >= 5 and int(ref.visible.sum()) >= 5
+    off = (uv[:, 0] < -0.3 * cam.width) | (uv[:, 0] > 1.3 * cam.width)
+    assert int((off & (tz > NEAR_PLANE)).sum()) >= 2, "no clamped splats in the scene"
+    kink = (tz - NEAR_PLANE).abs() < 1e-3
+    keep = ~kink
+    means, quats, scales = (t[keep].clone().requires_grad_(True) for t in (s.means, s.quats, s.scales))
+
+    def fn(m, q, sc):
+        p = project_splats_fused(m, q, sc, cam)
+        return p.means2d, p.conics, p.depths
+
+    assert torch.autograd.gradcheck(fn, (means, quats, scales), eps=1e-6, atol=1e-6, rtol=1e-5)
+
+
+def test_grad_of_unused_outputs_and_no_grad():
+    s = random_scene(100, seed=2)
+    cam = random_camera(32, 32, seed=2)
+    grads = []
+    for project in (project_splats, project_splats_fused):
+        m = s.means.clone().requires_grad_(True)
+        p = project(m, s.quats, s.scales, cam)  # quats/scales do not require grad
+        p.means2d.sum().backward()  # conics, depths unused
+        grads.append(m.grad)
+    assert _rel(grads[1], grads[0]) < 1e-6
+    assert not p.radii.requires_grad and not p.visible.requires_grad
+    with torch.no_grad():
+        q = project_splats_fused(s.means, s.quats, s.scales, cam)
+    assert not q.means2d.requires_grad
+
+
+def test_deterministic_across_threads():
+    s, cam = hard_scene(20_000, 5)  # > MIN_SPLATS_PARALLEL: the OpenMP loop splits
+    s.scales = s.scales.clamp(max=10.0)
+    a = _grads(project_splats_fused, s, cam)
+    torch.set_num_threads(2)  # the fixture restores the thread count
+    b = _grads(project_splats_fused, s, cam)
+    _assert_same_projection(a[0], b[0])
+    for k in PARAMS:
+        assert _same(a[1][k], b[1][k]), k
+
+
+def test_camera_with_grad_falls_back_to_torch():
+    s = random_scene(50, seed=1)
+    cam = random_camera(32, 32, seed=1)
+    w2c = cam.world_to_cam.clone().requires_grad_(True)
+    cam_g = Camera(w2c, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
+    p = project_splats_fused(s.means, s.quats, s.scales, cam_g)
+    p.means2d.sum().backward()
+    assert w2c.grad is not None and w2c.grad.abs().sum() > 0
+
+
+def test_clear_errors():
+    s = random_scene(10)
+    cam = random_camera()
+    with pytest.raises(TypeError, match="float64"):
+        project_splats_fused(s.means, s.quats.double(), s.scales, cam)
+    with pytest.raises(ValueError, match="quats"):
+        project_splats_fused(s.means, s.quats[:, :3], s.scales, cam)
+    with pytest.raises(ValueError, match="CPU"):
+        project_splats_fused(s.means.to("meta"), s.quats, s.scales, cam)
+    with pytest.raises(TypeError, match="float32/float64"):
+        project_splats_fused(s.means.half(), s.quats.half(), s.scales.half(), cam)
+    with pytest.raises(ValueError, match="projection"):
+        CpuRasterizer(projection="nope")
+
+
+# ------------------------------------------------------------------------------------------------
+# rasterizer
+
+
+def _render_grads(rast: CpuRasterizer, s: Splats, cam: Camera, seed: int = 0):
+    attrs = ("means", "scales", "quats", "opacities", "colors")
+    p = {k: getattr(s, k).detach().clone().requires_grad_(True) for k in attrs}
+    out = rast.render(Splats(**p), cam, torch.tensor([0.3, 0.5, 0.7]))
+    out.means2d.retain_grad()
+    g = torch.Generator().manual_seed(seed)
+    H, W, C = out.color.shape
+    loss = ((out.color * torch.rand(H, W, C, generator=g)).sum()
+            + (out.alpha * torch.rand(H, W, generator=g)).sum()
+            + (out.depth * torch.rand(H, W, generator=g) * 0.1).sum())
+    loss.backward()
+    grads = {k: p[k].grad for k in attrs}
+    grads["means2d"] = out.means2d.grad
+    return out, grads
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rasterizer_fused_vs_torch_projection(seed: int):
+    """Bit-identical images (the projection forward is bit-identical), gradients to float rounding;
+    the screen-space gradient (densification statistic) reaches the returned means2d."""
+    s = random_scene(600, seed=seed, scale_range=(0.01, 0.15))
+    cam = random_camera(48, 40, seed=seed)
+    out_t, g_t = _render_grads(CpuRasterizer(projection="torch"), s, cam, seed)
+    out_f, g_f = _render_grads(CpuRasterizer(), s, cam, seed)
+    for k in ("color", "alpha", "depth", "radii"):
+        assert torch.equal(getattr(out_f, k), getattr(out_t, k)), k
+    assert torch.equal(g_f["means2d"], g_t["means2d"])
+    assert torch.equal(g_f["opacities"], g_t["opacities"]) and torch.equal(g_f["colors"], g_t["colors"])
+    for k in PARAMS:
+        assert _rel(g_f[k], g_t[k]) < 1e-5, k
+
+
+def test_cpu_config_uses_fused_projection():
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    from src.utils.instantiate import build
+
+    cfg = OmegaConf.load(Path(__file__).resolve().parents[1] / "conf" / "rasterizer" / "cpu.yaml")
+    assert cfg.projection == "fused"
+    rast = build(cfg)
+    assert isinstance(rast, CpuRasterizer) and rast.projection == "fused"
+    assert CpuRasterizer().projection == "fused"
+
+
+def test_bench_reports_projection_times():
+    from src.bench.rasterizer import format_table, run
+
+    res = run([(32, 300)], reps=1, log=lambda _: None)
+    row = res["rows"][0]
+    assert set(row["proj_ms"]) == {"torch", "fused"} and set(row["proj_ms_min"]) == {"torch", "fused"}
+    assert all(v > 0 for v in row["proj_ms"].values())
+    assert {"cpu", "cpu_torch_proj", "torch_ref"} <= set(row["ms"])
+    assert row["grad_rel_err"] < 1e-5  # existing keys unchanged
+    table = format_table(res)
+    assert "proj fused ms" in table and "cpu_torch_proj ms" in table
+
+
+def test_build_cache_key_is_stable():
+    """The projection's cache directory is the one its build key names (torch's loader appends to
+    the flag lists it is given; the keys must not depend on what was loaded before)."""
+    from src.rasterizer import _build as b
+
+    b.load_extension()
+    key = b.build_key(b.projection_compile_flags(), b.PROJ_SOURCES)
+    assert (b.cache_root() / f"project_cpu_{key}").is_dir()
+    assert b.LDFLAGS == ["-fopenmp"]
