@@ -163,6 +163,21 @@ def test_cnn_backbone_full_size_shapes_and_prepare_sample():
         assert nb.feature_dim == 0 and nb(pts).shape == (64, 0) and _n_params(nb) == 0
 
 
+def test_compiled_backbone_matches_eager_and_keeps_the_state_dict():
+    kw = dict(plane_channels=4, noise_channels=2, noise_res=4, channels=8, n_up_blocks=1,
+              resnets_per_block=1, norm_groups=4)
+    eager, compiled = CNNTriplaneBackbone(**kw), CNNTriplaneBackbone(**kw, compile=True)
+    compiled.load_state_dict(eager.state_dict())
+    assert compiled.state_dict().keys() == eager.state_dict().keys()
+    pts = torch.rand(32, 3) * 2 - 1
+    a, b = eager(pts), compiled(pts)
+    torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-5)
+    a.square().sum().backward()
+    b.square().sum().backward()
+    for (name, pa), pb in zip(eager.named_parameters(), compiled.parameters(), strict=True):
+        torch.testing.assert_close(pb.grad, pa.grad, rtol=1e-3, atol=1e-5, msg=name)
+
+
 # --------------------------------------------------------------------------------------------------
 # SplatFieldNetwork
 # --------------------------------------------------------------------------------------------------

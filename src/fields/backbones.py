@@ -83,6 +83,9 @@ class CNNTriplaneBackbone(FieldBackbone):
             16, 8, 20, 32, 4, 2, 32, False -> three 16×160×160 planes).
         refine: apply the 2-layer refinement MLP (B.2: "a tiny 2-layer MLP with 48 neurons").
         seed: noise seed; plane p uses ``seed + p``.
+        compile: run the generators through ``torch.compile`` (compiled on the first ``prepare``;
+            the state dict is unchanged). Measured on this 2-core CPU, one 80x80 generator's
+            forward+backward: 1.6x faster, after ~80 s of compilation; channels_last was slower.
     """
 
     def __init__(
@@ -97,9 +100,12 @@ class CNNTriplaneBackbone(FieldBackbone):
         ref_extra_mid_resnet: bool = False,
         refine: bool = True,
         seed: int = 0,
+        compile: bool = False,
     ) -> None:
         super().__init__()
         self.plane_channels = plane_channels
+        self.compile = compile
+        self._compiled: list | None = None  # compiled generators (a plain list: not submodules)
         self.generators = nn.ModuleList(
             TriplaneGenerator(
                 noise_channels=noise_channels,
@@ -130,7 +136,12 @@ class CNNTriplaneBackbone(FieldBackbone):
 
     def prepare(self) -> Tensor:
         """The three planes stacked: [3, C, R, R] (xy, yz, zx)."""
-        return torch.cat([g() for g in self.generators], dim=0)
+        generators = self.generators
+        if self.compile:
+            if self._compiled is None:
+                self._compiled = [torch.compile(g) for g in self.generators]
+            generators = self._compiled
+        return torch.cat([g() for g in generators], dim=0)
 
     def sample(self, state: Tensor, points: Tensor) -> Tensor:
         """Refined tri-plane features [N, 3C] of ``points`` [N, 3] from planes ``state`` [3, C, R, R]."""
