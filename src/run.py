@@ -80,8 +80,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
         "choices": ctx["choices"], "overrides": ctx["overrides"],
         # scene: the root's folder name until the reader names it, so unfinished runs sit in their row
-        "keys": {"scene": Path(str(cfg.dataset.root)).name or None, "n_views": cfg.dataset.get("n_views"), "seed": cfg.seed,
-                 "iterations": cfg.trainer.iterations,
+        "keys": {"scene": Path(str(cfg.dataset.root)).name or None, "n_views": cfg.dataset.get("n_views"),
+                 "seed": cfg.seed, "iterations": cfg.trainer.iterations,
                  # resolved: sweeps copy swept values into the keys, e.g. ${schedule.max_splats}
                  **OmegaConf.to_container(cfg.get("extra_keys", {}), resolve=True)},
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
