@@ -295,6 +295,78 @@ def test_deterministic_across_threads():
         assert _same(a[1][k], b[1][k]), k
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_backward_reads_strided_gradient_rows_in_place(dtype: torch.dtype):
+    """Output gradients that are column views of one wide buffer (as the CPU rasterizer's backward
+    hands them over: rows of [N, R]) give bit-identical gradients to contiguous copies; so do
+    broadcast (stride-0) and transposed (non-contiguous rows, copied) gradients."""
+    from src.rasterizer._build import load_extension
+    from src.rasterizer.projection_cpu import _camera_args
+
+    s, cam = hard_scene(1003, 7, dtype)  # odd N: SIMD packs plus the scalar tail
+    s.scales = s.scales.clamp(max=10.0)
+    ext = load_extension()
+    viewmat = cam.world_to_cam.to(dtype).contiguous()
+    args = (s.means.contiguous(), s.quats.contiguous(), s.scales.contiguous(), viewmat, *_camera_args(cam))
+    g = torch.Generator().manual_seed(7)
+    wide = torch.randn(1003, 11, generator=g, dtype=dtype)  # [N, R]
+    views = (wide[:, 1:3], wide[:, 4:7], wide[:, 9])  # means2d [N, 2], conics [N, 3], depths [N]
+    assert not any(v.is_contiguous() for v in views)
+    got = ext.project_backward(*args, *views)
+    want = ext.project_backward(*args, *(v.contiguous() for v in views))
+    for x, y in zip(got, want, strict=True):
+        assert _same(x, y)
+    # through autograd: stride-0 (expanded) and transposed gradients
+    m = s.means.clone().requires_grad_(True)
+    p = project_splats_fused(m, s.quats, s.scales, cam)
+    gm2 = torch.randn(2, 1003, generator=g, dtype=dtype).t()  # [N, 2], non-contiguous rows
+    gdep = torch.ones((), dtype=dtype).expand(1003)  # [N], stride 0
+    torch.autograd.backward([p.means2d, p.depths], [gm2, gdep])
+    m2 = s.means.clone().requires_grad_(True)
+    p2 = project_splats_fused(m2, s.quats, s.scales, cam)
+    torch.autograd.backward([p2.means2d, p2.depths], [gm2.contiguous(), gdep.contiguous()])
+    assert _same(m.grad, m2.grad)
+
+
+def _grads_given(project, s: Splats, cam: Camera, out_grads: list[torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Project and backpropagate the given gradients of (means2d, conics, depths)."""
+    p = {k: getattr(s, k).detach().clone().requires_grad_(True) for k in PARAMS}
+    out = project(p["means"], p["quats"], p["scales"], cam)
+    torch.autograd.backward([out.means2d, out.conics, out.depths], out_grads)
+    return {k: p[k].grad for k in PARAMS}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_zero_output_gradients_skip_is_exact(dtype: torch.dtype):
+    """Splats whose output gradients are all zero (occluded ones, in a render) take the shortcut of
+    zero gradients where the forward intermediates are finite: the same as torch autograd (0, or
+    non-finite where an intermediate overflows, for which the full chain rule runs), in whole SIMD
+    packs, mixed packs and the scalar tail; the other splats are bit-identical to a run without
+    any zero-gradient splat (lanes are independent)."""
+    n = 2003
+    s, cam = hard_scene(n, 3, dtype)
+    s.scales = s.scales.clamp(max=10.0)
+    s.scales[-7:] = 1e30 if dtype == torch.float32 else 1e300  # covariance overflows to inf
+    g = torch.Generator().manual_seed(3)
+    keep = torch.rand(n, generator=g) < 0.3
+    keep[:400] = False  # whole packs of zero-gradient splats
+    keep[-3] = True
+    out_grads = [torch.randn(n, 2, generator=g).to(dtype), torch.randn(n, 3, generator=g).to(dtype),
+                 torch.randn(n, generator=g).to(dtype)]
+    masked = [out_grads[0] * keep[:, None], out_grads[1] * keep[:, None], out_grads[2] * keep]
+    g_ref = _grads_given(project_splats, s, cam, masked)
+    g_got = _grads_given(project_splats_fused, s, cam, masked)
+    sub = Splats(s.means[keep], s.scales[keep], s.quats[keep], s.opacities[keep], s.colors[keep])
+    g_sub = _grads_given(project_splats_fused, sub, cam, [t[keep] for t in out_grads])
+    zero_rows = ~keep
+    for k in PARAMS:
+        ref, got = g_ref[k][zero_rows], g_got[k][zero_rows]
+        assert _same(torch.isfinite(got), torch.isfinite(ref)), k
+        assert bool((got[torch.isfinite(got)] == 0).all()), k
+        assert not bool(torch.isfinite(g_got[k][-7:][zero_rows[-7:]]).all()), k  # as torch: not finite
+        assert _same(g_got[k][keep], g_sub[k]), k
+
+
 def test_camera_with_grad_falls_back_to_torch():
     s = random_scene(50, seed=1)
     cam = random_camera(32, 32, seed=1)

@@ -37,10 +37,11 @@ def ensure_built(verbose: bool = False) -> None:
 
 
 class _RasterizeFunction(torch.autograd.Function):
-    """Composite depth-sorted splats; differentiable in means2d, conics, opacities, features, background.
+    """Composite depth-sorted splats; differentiable in means2d, conics, opacities, colors, depths, background.
 
-    Inputs: means2d [N, 2], conics [N, 3], opacities [N], features [N, C + 1] (colours, then depth;
-    float32, contiguous, CPU), depths [N] (sort key, not differentiated), radii [N] int32,
+    Inputs (float32, contiguous, CPU): means2d [N, 2], conics [N, 3], opacities [N], colors [N, C],
+    depths [N] (both the sort key and the composited depth feature; the features composited are
+    [colors, depths], NF = C + 1, without materialising their concatenation), radii [N] int32,
     visible [N] bool, background [C].
     Outputs: color [H, W, C] = sum_j c_j alpha_j T_j + T_final bg, alpha [H, W] = 1 - T_final,
     depth [H, W] = sum_j z_j alpha_j T_j, stats [16] float64 (non-differentiable; see
@@ -53,7 +54,7 @@ class _RasterizeFunction(torch.autograd.Function):
         means2d: Tensor,
         conics: Tensor,
         opacities: Tensor,
-        features: Tensor,
+        colors: Tensor,
         depths: Tensor,
         radii: Tensor,
         visible: Tensor,
@@ -64,12 +65,13 @@ class _RasterizeFunction(torch.autograd.Function):
         count: bool,
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         ext = load_extension()
-        out = ext.forward(means2d, conics, opacities, features, depths, radii, visible, background,
+        out = ext.forward(means2d, conics, opacities, colors, depths, radii, visible, background,
                           width, height, cull, count)
         color, alpha, depth, t_final, last, *state, stats = out
         ctx.save_for_backward(background, t_final, last, *state)
         ctx.stats = stats
         ctx.n_splats = means2d.shape[0]
+        ctx.channels = colors.shape[1]
         ctx.count = count
         ctx.mark_non_differentiable(stats)
         return color, alpha, depth, stats
@@ -81,11 +83,13 @@ class _RasterizeFunction(torch.autograd.Function):
         background, t_final, last, *state = ctx.saved_tensors
         (g,) = ext.backward(
             grad_color.contiguous(), grad_alpha.contiguous(), grad_depth.contiguous(), background,
-            t_final, last, *state, ctx.stats, ctx.n_splats, ctx.count)  # [N, 6 + C + 1]
+            t_final, last, *state, ctx.stats, ctx.n_splats, ctx.count)  # [N, 6 + C + 1], original order
         grad_bg = None
         if ctx.needs_input_grad[7]:
             grad_bg = (grad_color * t_final[..., None]).sum(dim=(0, 1))
-        return (g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], None, None, None, grad_bg,
+        C = ctx.channels
+        # strided views of g (no copies here; the fused projection backward reads strided rows)
+        return (g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:6 + C], g[:, 6 + C], None, None, grad_bg,
                 None, None, None, None)
 
 
@@ -169,13 +173,12 @@ class CpuRasterizer(Rasterizer):
 
         project = project_splats_fused if self.projection == "fused" else project_splats
         proj = project(splats.means, splats.quats, splats.scales, camera)
-        features = torch.cat([splats.colors, proj.depths[:, None]], dim=1).contiguous()  # [N, C + 1]
         color, alpha, depth, stats = _RasterizeFunction.apply(
             proj.means2d.contiguous(),
             proj.conics.contiguous(),
             splats.opacities.contiguous(),
-            features,
-            proj.depths.detach().contiguous(),
+            splats.colors.contiguous(),  # [N, C]
+            proj.depths.contiguous(),  # [N] sort key and depth feature (differentiable)
             proj.radii.to(torch.int32).contiguous(),
             proj.visible.contiguous(),
             background.contiguous(),

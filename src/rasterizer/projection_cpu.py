@@ -38,6 +38,17 @@ def _camera_args(camera: Camera) -> CamArgs:
             int(camera.height), NEAR_PLANE, FRUSTUM_CLAMP, EPS2D, TILE)
 
 
+def _rows(g: Tensor, dt: torch.dtype) -> Tensor:
+    """``g`` in dtype ``dt`` with contiguous rows; any row stride is kept (no copy of the strided
+    column views the CPU rasterizer's backward hands over), anything else is made contiguous."""
+    g = g.to(dt)
+    if g.dim() == 2 and g.stride(1) == 1 and g.stride(0) >= 0:
+        return g
+    if g.dim() == 1 and g.stride(0) >= 0:
+        return g
+    return g.contiguous()
+
+
 class _ProjectFunction(torch.autograd.Function):
     """EWA projection; differentiable in means [N, 3], quats [N, 4], scales [N, 3].
 
@@ -65,9 +76,9 @@ class _ProjectFunction(torch.autograd.Function):
         dt = means.dtype
         g_means, g_quats, g_scales = load_extension().project_backward(
             means, quats, scales, viewmat, *ctx.cam,
-            g_means2d.to(dt).contiguous(),  # [N, 2]
-            g_conics.to(dt).contiguous(),  # [N, 3]
-            g_depths.to(dt).contiguous())  # [N]
+            _rows(g_means2d, dt),  # [N, 2]
+            _rows(g_conics, dt),  # [N, 3]
+            _rows(g_depths, dt))  # [N]
         return g_means, g_quats, g_scales, None, None
 
 

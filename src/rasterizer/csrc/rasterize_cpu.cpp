@@ -45,6 +45,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <cstring>
 #include <ctime>
 #include <limits>
 #include <memory>
@@ -119,67 +120,104 @@ inline void put_ms(double* st, int k, double wall, double cpu) {
 // Depth order: stable LSD radix sort of positive float depths (bit patterns of positive floats
 // are monotone), equal to torch.argsort(depths[vis], stable=True) mapped back to indices.
 std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n) {
-  std::vector<int32_t> idx;
-  idx.reserve(n);
-  for (int64_t i = 0; i < n; ++i)
-    if (visible[i]) idx.push_back(static_cast<int32_t>(i));
-  const size_t m = idx.size();
-  std::vector<uint32_t> key(m), key2(m);
-  std::vector<int32_t> idx2(m);
-  for (size_t i = 0; i < m; ++i) {
-    float d = depth[idx[i]];
-    uint32_t u;
-    std::memcpy(&u, &d, 4);
-    // map IEEE order to unsigned order (handles negatives too, although visible depths are > 0.2)
-    key[i] = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
-  }
   constexpr int BITS = 8;
   constexpr uint32_t RADIX = 1u << BITS;
-  std::vector<uint32_t> count(RADIX);
-  for (int shift = 0; shift < 32; shift += BITS) {
-    std::fill(count.begin(), count.end(), 0u);
-    for (size_t i = 0; i < m; ++i) count[(key[i] >> shift) & (RADIX - 1)]++;
-    if (m == 0 || count[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
+  constexpr int PASSES = 32 / BITS;
+  std::vector<int32_t> idx(n);
+  std::vector<uint32_t> key(n);
+  // one pass: compaction of the visible splats, keys and the histograms of all digits
+  std::vector<uint32_t> count(static_cast<size_t>(PASSES) * RADIX, 0u);
+  size_t m = 0;
+  for (int64_t i = 0; i < n; ++i) {
+    if (!visible[i]) continue;
+    uint32_t u;
+    std::memcpy(&u, depth + i, 4);
+    // map IEEE order to unsigned order (handles negatives too, although visible depths are > 0.2)
+    const uint32_t k = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+    key[m] = k;
+    idx[m] = static_cast<int32_t>(i);
+    ++m;
+    for (int p = 0; p < PASSES; ++p) count[p * RADIX + ((k >> (p * BITS)) & (RADIX - 1))]++;
+  }
+  idx.resize(m);
+  key.resize(m);
+  std::vector<uint32_t> key2(m);
+  std::vector<int32_t> idx2(m);
+  for (int p = 0; p < PASSES; ++p) {
+    uint32_t* cnt = count.data() + p * RADIX;
+    const int shift = p * BITS;
+    if (m == 0 || cnt[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
     uint32_t sum = 0;
     for (uint32_t r = 0; r < RADIX; ++r) {
-      uint32_t c = count[r];
-      count[r] = sum;
+      const uint32_t c = cnt[r];
+      cnt[r] = sum;
       sum += c;
     }
-    for (size_t i = 0; i < m; ++i) {
-      uint32_t pos = count[(key[i] >> shift) & (RADIX - 1)]++;
-      key2[pos] = key[i];
-      idx2[pos] = idx[i];
+    const bool last_pass = [&] {  // no later pass moves elements: the keys need not be written
+      for (int q = p + 1; q < PASSES; ++q)
+        if (count[q * RADIX + ((key[0] >> (q * BITS)) & (RADIX - 1))] != m) return false;
+      return true;
+    }();
+    if (last_pass) {
+      for (size_t i = 0; i < m; ++i) idx2[cnt[(key[i] >> shift) & (RADIX - 1)]++] = idx[i];
+    } else {
+      for (size_t i = 0; i < m; ++i) {
+        const uint32_t pos = cnt[(key[i] >> shift) & (RADIX - 1)]++;
+        key2[pos] = key[i];
+        idx2[pos] = idx[i];
+      }
+      key.swap(key2);
     }
-    key.swap(key2);
     idx.swap(idx2);
   }
   return idx;
 }
 
-// Half-row mask of the splat's cull ellipse over a tile: bit (h * 16 + r) set if half-row h (pixels
-// x0 + 8h .. x0 + 8h + 7) of row r may hold a pixel with Q <= thr.
-inline uint32_t ellipse_rows(const Geo& g, float tx0, float ty0) {
-  if (!(g.thr < std::numeric_limits<float>::infinity())) return 0xFFFFFFFFu;
+// The x-extent of the splat's cull ellipse on the 16 pixel rows of one tile row (rows ty0 + 0.5 ..
+// ty0 + 15.5, two vectors of 8 rows): [xlo, xhi] (inflated) where ok; computed once per tile row
+// and shared by all tiles of the rect in that row.
+struct RowSpans {
+  VF xlo[2], xhi[2];
+  VM ok[2];
+  bool live[2];  // the 8-row block meets the ellipse's y-extent
+  bool all;      // no culling (thr = inf): every half-row
+};
+inline RowSpans ellipse_spans(const Geo& g, float ty0) {
+  RowSpans sp;
+  sp.all = !(g.thr < std::numeric_limits<float>::infinity());
+  if (sp.all) return sp;
   const VF a = set1(g.a), thr = set1(g.thr), det = set1(g.det), ia = set1(g.inv_a), nb = set1(-g.b);
   const VF mx = set1(g.mx);
   const VF amx = set1(std::fabs(g.mx));
   const VF athr = a * thr;
-  const VF lo0 = set1(tx0 + 0.5f), hi0 = set1(tx0 + 7.5f), lo1 = set1(tx0 + 8.5f), hi1 = set1(tx0 + 15.5f);
-  uint32_t m0 = 0, m1 = 0;
   for (int k = 0; k < 2; ++k) {
     const float yb = ty0 + 8.0f * k;  // rows yb + 0.5 .. yb + 7.5
-    if (!(yb + 7.5f >= g.my - g.ry && yb + 0.5f <= g.my + g.ry)) continue;
+    sp.live[k] = yb + 7.5f >= g.my - g.ry && yb + 0.5f <= g.my + g.ry;
+    if (!sp.live[k]) continue;
     VF dy = (set1(yb + 0.5f) + iota()) - set1(g.my);
     VF disc = fnmadd(det * dy, dy, athr);
-    VM ok = disc >= zero();
+    sp.ok[k] = disc >= zero();
     VF s = vsqrt(vmax(disc, zero())) * ia;
     VF off = nb * dy * ia;
     VF cen = mx + off;
     VF marg = set1(1e-3f) + set1(2e-6f) * (amx + vabs(off) + s);
-    VF xlo = cen - s - marg, xhi = cen + s + marg;
-    int l = movemask(ok & (xhi >= lo0) & (xlo <= hi0));
-    int r = movemask(ok & (xhi >= lo1) & (xlo <= hi1));
+    sp.xlo[k] = cen - s - marg;
+    sp.xhi[k] = cen + s + marg;
+  }
+  return sp;
+}
+
+// Half-row mask of the splat's cull ellipse over the tile at x0 = tx0 of the spans' tile row: bit
+// (h * 16 + r) set if half-row h (pixels x0 + 8h .. x0 + 8h + 7) of row r may hold a pixel with
+// Q <= thr.
+inline uint32_t span_mask(const RowSpans& sp, float tx0) {
+  if (sp.all) return 0xFFFFFFFFu;
+  const VF lo0 = set1(tx0 + 0.5f), hi0 = set1(tx0 + 7.5f), lo1 = set1(tx0 + 8.5f), hi1 = set1(tx0 + 15.5f);
+  uint32_t m0 = 0, m1 = 0;
+  for (int k = 0; k < 2; ++k) {
+    if (!sp.live[k]) continue;
+    int l = movemask(sp.ok[k] & (sp.xhi[k] >= lo0) & (sp.xlo[k] <= hi0));
+    int r = movemask(sp.ok[k] & (sp.xhi[k] >= lo1) & (sp.xlo[k] <= hi1));
     m0 |= static_cast<uint32_t>(l) << (8 * k);
     m1 |= static_cast<uint32_t>(r) << (8 * k);
   }
@@ -204,14 +242,34 @@ inline Eval eval_splat(const Geo& g, VF px, float dy) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// A 1-D array living in an (uninitialised) at::Tensor, so the binning's arrays are handed to
+// Python (saved for the backward) without copies. V = int32_t / uint32_t (kInt) or int64_t (kLong).
+template <typename V>
+struct TVec {
+  at::Tensor t;
+  V* p = nullptr;
+  void resize(int64_t n) {
+    static_assert(sizeof(V) == 4 || sizeof(V) == 8, "4- or 8-byte elements");
+    t = at::empty({n}, sizeof(V) == 8 ? at::kLong : at::kInt);
+    p = reinterpret_cast<V*>(t.data_ptr());
+  }
+  void assign(int64_t n, V v) {
+    resize(n);
+    std::fill(p, p + n, v);
+  }
+  V& operator[](int64_t i) { return p[i]; }
+  const V& operator[](int64_t i) const { return p[i]; }
+  const V* data() const { return p; }
+};
+
 struct Binning {
   int gx = 0, gy = 0, ntiles = 0;
-  std::vector<int64_t> tile_off;    // [ntiles + 1]
-  std::vector<int32_t> tile_list;   // [P] sorted splat index per slot
-  std::vector<uint32_t> tile_mask;  // [P] half-row cull mask per slot
-  std::vector<int64_t> pair_off;    // [M + 1] splat-major pair offsets
-  std::vector<int32_t> pair_slot;   // [P] slot of each splat-major pair
-  std::vector<int32_t> pair_tile;   // [P] tile of each splat-major pair
+  TVec<int64_t> tile_off;    // [ntiles + 1]
+  TVec<int32_t> tile_list;   // [P] sorted splat index per slot
+  TVec<uint32_t> tile_mask;  // [P] half-row cull mask per slot
+  TVec<int64_t> pair_off;    // [M + 1] splat-major pair offsets
+  TVec<int32_t> pair_slot;   // [P] slot of each splat-major pair
+  TVec<int32_t> pair_tile;   // [P] tile of each splat-major pair
 };
 
 struct Rect {
@@ -251,7 +309,8 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   const int T = b.ntiles;
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 16384 + 1)));
   std::vector<int64_t> hist(static_cast<size_t>(nth) * T, 0);
-  std::vector<int32_t> cnt(M);
+  b.pair_off.resize(M + 1);  // per-splat pair counts at [i + 1], then their prefix sums
+  b.pair_off[0] = 0;
   std::vector<std::vector<uint32_t>> masks(nth);  // per thread: masks of all rect tiles, in order
   // pass 1: masks, per-splat counts and per-(thread, tile) counts over contiguous splat chunks
 #pragma omp parallel num_threads(nth)
@@ -266,8 +325,9 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
       const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
       int32_t c = 0;
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
+        const RowSpans sp = ellipse_spans(g, static_cast<float>(ty * TILE));
         for (int tx = rc.x0; tx < rc.x1; ++tx) {
-          const uint32_t m = ellipse_rows(g, static_cast<float>(tx * TILE), static_cast<float>(ty * TILE));
+          const uint32_t m = span_mask(sp, static_cast<float>(tx * TILE));
           mk.push_back(m);
           if (m) {
             h[ty * b.gx + tx]++;
@@ -275,7 +335,7 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
           }
         }
       }
-      cnt[i] = c;
+      b.pair_off[i + 1] = c;
     }
   }
   // offsets: tiles in order, threads (= depth chunks) in order inside a tile -> stable
@@ -292,8 +352,7 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   b.tile_off[T] = run;
   const int64_t P = run;
   TORCH_CHECK(P < (int64_t(1) << 31), "rasterize_cpu: too many (splat, tile) pairs: ", P);
-  b.pair_off.assign(M + 1, 0);
-  for (int64_t i = 0; i < M; ++i) b.pair_off[i + 1] = b.pair_off[i] + cnt[i];
+  for (int64_t i = 0; i < M; ++i) b.pair_off[i + 1] += b.pair_off[i];
   b.tile_list.resize(P);
   b.tile_mask.resize(P);
   b.pair_slot.resize(P);
@@ -584,8 +643,9 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 }
 
 // Forward.
-// Args: means2d [N,2], conics [N,3], opacities [N], features [N,NF] (colours, then depth), depths [N]
-//       (sort key), radii [N] int32, visible [N] bool, background [NF-1]; width, height; cull
+// Args: means2d [N,2], conics [N,3], opacities [N], colors [N,C], depths [N] (sort key and the
+//       last feature channel: features = [colors, depths], NF = C + 1), radii [N] int32,
+//       visible [N] bool, background [C]; width, height; cull
 //       (exact culling on/off); count (pair statistics).
 // Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
@@ -596,23 +656,23 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //          tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
 //          reduction, then the process CPU times of the same six stages.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
-                                   at::Tensor features, at::Tensor depths, at::Tensor radii,
+                                   at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                    at::Tensor visible, at::Tensor background, int64_t width,
                                    int64_t height, bool cull, bool count) {
   check_f32(means2d, "means2d", 2);
   check_f32(conics, "conics", 2);
   check_f32(opacities, "opacities", 1);
-  check_f32(features, "features", 2);
+  check_f32(colors, "colors", 2);
   check_f32(depths, "depths", 1);
   check_f32(background, "background", 1);
   const int64_t N = means2d.size(0);
   TORCH_CHECK(means2d.size(1) == 2, "rasterize_cpu: means2d must be [N, 2]");
   TORCH_CHECK(conics.size(0) == N && conics.size(1) == 3, "rasterize_cpu: conics must be [N, 3]");
   TORCH_CHECK(opacities.size(0) == N, "rasterize_cpu: opacities must be [N]");
-  TORCH_CHECK(features.size(0) == N && features.size(1) >= 1, "rasterize_cpu: features must be [N, NF>=1]");
+  TORCH_CHECK(colors.size(0) == N, "rasterize_cpu: colors must be [N, C]");
   TORCH_CHECK(depths.size(0) == N, "rasterize_cpu: depths must be [N]");
-  TORCH_CHECK(background.size(0) == features.size(1) - 1,
-              "rasterize_cpu: background must have NF - 1 = ", features.size(1) - 1, " channels");
+  TORCH_CHECK(background.size(0) == colors.size(1),
+              "rasterize_cpu: background must have C = ", colors.size(1), " channels");
   TORCH_CHECK(radii.device().is_cpu() && radii.scalar_type() == at::kInt && radii.dim() == 1 &&
                   radii.size(0) == N && radii.is_contiguous(),
               "rasterize_cpu: radii must be a contiguous CPU int32 [N] tensor");
@@ -622,18 +682,21 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   TORCH_CHECK(width > 0 && height > 0 && width <= 65536 && height <= 65536,
               "rasterize_cpu: bad image size ", width, "x", height);
   const int W = static_cast<int>(width), H = static_cast<int>(height);
-  const int NF = static_cast<int>(features.size(1));
+  const int C = static_cast<int>(colors.size(1));
+  const int NF = C + 1;  // features: colours, then depth
   const int nth = num_threads();
   const Stamp t0 = now();
 
   const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
-  // per-splat records in the original order (sequential reads), then one gathered line per splat
+  // per-splat records in the original order (sequential reads and writes), then one gathered
+  // line per splat in depth order (measured: faster than packing straight from gathered inputs)
   AlignedBuf<Geo> geo_orig(static_cast<size_t>(std::max<int64_t>(N, 1)));
   {
     const float* m2 = means2d.data_ptr<float>();
     const float* cn = conics.data_ptr<float>();
     const float* op = opacities.data_ptr<float>();
-    const float* fe = features.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    const float* dep = depths.data_ptr<float>();
     const bool* vis = visible.data_ptr<bool>();
     const int32_t* rad = radii.data_ptr<int32_t>();
     Geo* go = geo_orig.p;
@@ -668,7 +731,12 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
         g.rect[1] = static_cast<int16_t>(rc.y0);
         g.rect[2] = static_cast<int16_t>(rc.x1);
         g.rect[3] = static_cast<int16_t>(rc.y1);
-        for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = (NF == 4) ? fe[s * 4 + c2] : 0.0f;
+        if (NF == 4) {
+          for (int c2 = 0; c2 < 3; ++c2) g.f[c2] = col[s * 3 + c2];
+          g.f[3] = dep[s];
+        } else {
+          for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = 0.0f;
+        }
         if (std::isinf(g.thr)) {
           g.ry = std::numeric_limits<float>::infinity();
         } else if (g.thr < 0.0f) {
@@ -690,14 +758,18 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   TORCH_CHECK(reinterpret_cast<uintptr_t>(geo) % 64 == 0 || M == 0, "rasterize_cpu: misaligned buffer");
   {
     const Geo* go = geo_orig.p;
-    const float* fe = features.data_ptr<float>();
+    const float* col = colors.data_ptr<float>();
+    const float* dep = depths.data_ptr<float>();
     float* fs = feat_t.data_ptr<float>();
     at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
       for (int64_t i = lo; i < hi; ++i) {
         if (i + 16 < hi) __builtin_prefetch(go + order[i + 16]);
         geo[i] = go[order[i]];
-        if (NF != 4)
-          for (int c = 0; c < NF; ++c) fs[i * NF + c] = fe[static_cast<int64_t>(order[i]) * NF + c];
+        if (NF != 4) {
+          const int64_t o = order[i];
+          for (int c = 0; c < C; ++c) fs[i * NF + c] = col[o * C + c];
+          fs[i * NF + C] = dep[o];
+        }
       }
     });
   }
@@ -769,12 +841,12 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           order_t,
           geo_t,
           feat_t,
-          to_tensor(bins.tile_off, at::kLong),
-          to_tensor(bins.tile_list, at::kInt),
-          to_tensor(bins.tile_mask, at::kInt),
-          to_tensor(bins.pair_off, at::kLong),
-          to_tensor(bins.pair_slot, at::kInt),
-          to_tensor(bins.pair_tile, at::kInt),
+          bins.tile_off.t,
+          bins.tile_list.t,
+          bins.tile_mask.t,
+          bins.pair_off.t,
+          bins.pair_slot.t,
+          bins.pair_tile.t,
           stats_t};
 }
 
@@ -863,10 +935,12 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     }
   }
   const Stamp t1 = now();
-  // Per-splat reduction over its tiles in a fixed (tile) order, written in depth order (sequential),
-  // then gathered into the original order (random reads are prefetched; random writes are not).
-  // One output row per splat: [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)].
-  auto g_all = at::empty({N, R}, at::kFloat);
+  // Per-splat reduction over its tiles in a fixed (tile) order, in depth order, each splat's row
+  // written straight into its original position (a random write per splat, the record reads are
+  // random and prefetched). One output row per splat:
+  // [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)]; rows of splats that are not
+  // visible are zero.
+  auto g_all = M < N ? at::zeros({N, R}, at::kFloat) : at::empty({N, R}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* ord = order.data_ptr<int32_t>();
@@ -877,14 +951,16 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     const float* recp = rec.get();
     std::vector<int64_t> pend(T);  // slot is processed iff slot < pend[tile]
     for (int t = 0; t < T; ++t) pend[t] = toff[t] + nproc[t];
-    std::unique_ptr<float[]> gs(new float[static_cast<size_t>(std::max<int64_t>(M, 1)) * R]);
-    std::vector<int32_t> inv(N, -1);
-    for (int64_t i = 0; i < M; ++i) inv[ord[i]] = static_cast<int32_t>(i);
-    float* gsp = gs.get();
     at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
       const int64_t kend = poff[hi];
+      std::vector<float> sumv(R);
+      float* sum = sumv.data();
       for (int64_t i = lo; i < hi; ++i) {
-        float* sum = gsp + i * R;
+        if (i + 16 < hi) {
+          const float* d = og + static_cast<int64_t>(ord[i + 16]) * R;
+          __builtin_prefetch(d, 1);
+          __builtin_prefetch(d + R - 1, 1);
+        }
         for (int q = 0; q < R; ++q) sum[q] = 0.0f;
         for (int64_t k = poff[i]; k < poff[i + 1]; ++k) {
           if (k + 16 < kend) __builtin_prefetch(recp + static_cast<int64_t>(pslot[k + 16]) * R);
@@ -894,25 +970,13 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
           for (int q = 0; q < R; ++q) sum[q] += r[q];
         }
         const Geo& g = gp[i];
-        const float s0 = sum[0], s1 = sum[1];
-        sum[0] = g.a * s0 + g.b * s1;
-        sum[1] = g.b * s0 + g.c * s1;
-        sum[2] = -0.5f * sum[2];
-        sum[3] = -sum[3];
-        sum[4] = -0.5f * sum[4];
-      }
-    });
-    at::parallel_for(0, N, 65536, [&](int64_t lo, int64_t hi) {
-      for (int64_t s = lo; s < hi; ++s) {
-        if (s + 16 < hi && inv[s + 16] >= 0) __builtin_prefetch(gsp + static_cast<int64_t>(inv[s + 16]) * R);
-        float* o = og + s * R;
-        const int32_t i = inv[s];
-        if (i < 0) {
-          for (int q = 0; q < R; ++q) o[q] = 0.0f;
-        } else {
-          const float* src = gsp + static_cast<int64_t>(i) * R;
-          for (int q = 0; q < R; ++q) o[q] = src[q];
-        }
+        float* o = og + static_cast<int64_t>(ord[i]) * R;
+        o[0] = g.a * sum[0] + g.b * sum[1];
+        o[1] = g.b * sum[0] + g.c * sum[1];
+        o[2] = -0.5f * sum[2];
+        o[3] = -sum[3];
+        o[4] = -0.5f * sum[4];
+        for (int q = 5; q < R; ++q) o[q] = sum[q];
       }
     });
   }
