@@ -18,7 +18,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
-from layouts import write_json, write_npz  # noqa: F401  (re-exported)
+from layouts import write_gt_mesh, write_json, write_npz  # noqa: F401  (re-exported)
 from mathutils import Matrix
 from PIL import Image
 
@@ -257,10 +257,12 @@ def _render_mesh_objects(scene):
     ]
 
 
-def world_triangles(scene) -> np.ndarray:
-    """All triangles of the evaluated (deformed) render geometry, world coords, [T,3,3]."""
+def world_mesh(scene) -> tuple[np.ndarray, np.ndarray]:
+    """The evaluated (deformed) render geometry as one indexed triangle mesh in world coordinates:
+    (vertices [V, 3] float64, faces [T, 3] int64), objects in name order; ``vertices[faces]`` is
+    exactly ``world_triangles(scene)``."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    tris = []
+    verts, faces, nv_total = [], [], 0
     for obj in sorted(_render_mesh_objects(scene), key=lambda o: o.name):
         ev = obj.evaluated_get(depsgraph)
         mesh = ev.to_mesh()
@@ -276,11 +278,18 @@ def world_triangles(scene) -> np.ndarray:
             idx = np.empty(nt * 3, dtype=np.int64)
             mesh.loop_triangles.foreach_get("vertices", idx)
             mw = np.array(ev.matrix_world, dtype=np.float64)
-            cw = co @ mw[:3, :3].T + mw[:3, 3]
-            tris.append(cw[idx.reshape(-1, 3)])
+            verts.append(co @ mw[:3, :3].T + mw[:3, 3])
+            faces.append(idx.reshape(-1, 3) + nv_total)
+            nv_total += nv
         finally:
             ev.to_mesh_clear()
-    return np.concatenate(tris, axis=0)
+    return np.concatenate(verts, axis=0), np.concatenate(faces, axis=0)
+
+
+def world_triangles(scene) -> np.ndarray:
+    """All triangles of the evaluated (deformed) render geometry, world coords, [T,3,3]."""
+    verts, faces = world_mesh(scene)
+    return verts[faces]
 
 
 def triangle_areas(tris: np.ndarray) -> np.ndarray:

@@ -344,6 +344,13 @@ def mv_cameras():
     return train, test
 
 
+def stack_meshes(meshes):
+    """[(vertices [V, 3], faces [T, 3])] per frame -> (vertices [F, V, 3], faces); the topology must not change."""
+    faces = meshes[0][1]
+    assert all(np.array_equal(f, faces) for _, f in meshes), "topology changed between frames"
+    return np.stack([v for v, _ in meshes]), faces
+
+
 def _gt_sampler(scene, update, n):
     update(0.0)
     tris = C.world_triangles(scene)
@@ -361,13 +368,15 @@ def render_multiview(name, builder, out_root: Path, limit=None, n_points=12000, 
     times = np.array([f / (N_FRAMES_MV - 1) for f in range(N_FRAMES_MV)], dtype=np.float32)[:n_frames]
     sampler, area = _gt_sampler(scene, update, n_points)
     frames = {"train": [], "test": []}
-    gt = []
+    gt, mesh = [], []
     t0 = time.time()
     n_img = 0
     for f in range(n_frames):
         t = f / (N_FRAMES_MV - 1)  # exact in the JSON; gt "times" holds the same values as float32
         update(t)
-        gt.append(sampler(C.world_triangles(scene)))
+        verts, faces = C.world_mesh(scene)
+        gt.append(sampler(verts[faces]))
+        mesh.append((verts, faces))
         for split, poses in (("train", train), ("test", test)):
             for c, c2w in enumerate(poses):
                 m = C.set_camera_pose(cam, c2w)
@@ -396,6 +405,7 @@ def render_multiview(name, builder, out_root: Path, limit=None, n_points=12000, 
             },
         )
     C.write_npz(out / "gt_points.npz", points=np.asfortranarray(np.stack(gt).astype(np.float32)), times=times)
+    C.write_gt_mesh(out / "gt_mesh.npz", *stack_meshes(mesh), times=times)
     return {
         "scene": name,
         "kind": "dynamic_mv",
@@ -448,13 +458,14 @@ def render_mono(name, builder, out_root: Path, limit=None, n_points=6000):
         key=lambda j: (j[0], ["train", "val", "test"].index(j[1]), j[2]),
     )
     frames = {k: [] for k in splits}
-    gt = {}
+    gt, mesh = {}, {}
     t0 = time.time()
     for fi, split, k, c2w in jobs:
         t = fi / (n_train - 1)
         update(t)
         if fi not in gt:
-            gt[fi] = sampler(C.world_triangles(scene))
+            mesh[fi] = C.world_mesh(scene)
+            gt[fi] = sampler(mesh[fi][0][mesh[fi][1]])
         m = C.set_camera_pose(cam, c2w)
         C.render_to(scene, out / split / f"r_{k:03d}.png")
         frames[split].append(
@@ -474,9 +485,11 @@ def render_mono(name, builder, out_root: Path, limit=None, n_points=6000):
     for fi in range(n_train):
         if fi not in gt:
             update(fi / (n_train - 1))
-            gt[fi] = sampler(C.world_triangles(scene))
+            mesh[fi] = C.world_mesh(scene)
+            gt[fi] = sampler(mesh[fi][0][mesh[fi][1]])
     pts = np.stack([gt[i] for i in range(n_train)]).astype(np.float32)
     C.write_npz(out / "gt_points.npz", points=np.asfortranarray(pts), times=times)
+    C.write_gt_mesh(out / "gt_mesh.npz", *stack_meshes([mesh[i] for i in range(n_train)]), times=times)
     return {
         "scene": name,
         "kind": "dynamic_mono",

@@ -26,12 +26,12 @@ set -e
 if [ "$#" -eq 0 ]; then
     if [ -f tools/datagen/formats.py ]; then "$VPY" tools/datagen/formats.py --data "$OUT"; fi
     # determinism: re-render the first view of every split of two scenes (and their ground-truth
-    # points) in a fresh process and compare bytes with what was just written
+    # points and meshes) in a fresh process and compare bytes with what was just written
     TMP="$(mktemp -d -t splatfields_datagen_check.XXXXXX)"
     "$VPY" tools/datagen/render_all.py --out "$TMP" --only static/plant dynamic_mono/bouncing --limit 1 >/dev/null 2>&1
     n_same=0
-    for f in static/plant/{train,val,test}/r_0.png static/plant/gt_points.npz \
-             dynamic_mono/bouncing/{train,val,test}/r_000.png dynamic_mono/bouncing/gt_points.npz; do
+    for f in static/plant/{train,val,test}/r_0.png static/plant/gt_{points,mesh}.npz \
+             dynamic_mono/bouncing/{train,val,test}/r_000.png dynamic_mono/bouncing/gt_{points,mesh}.npz; do
         if cmp -s "$TMP/$f" "$OUT/$f"; then
             n_same=$((n_same + 1))
         else
@@ -39,7 +39,7 @@ if [ "$#" -eq 0 ]; then
             exit 1
         fi
     done
-    echo "[datagen] determinism: $n_same re-rendered files (6 PNGs, 2 gt_points.npz) are byte-identical"
+    echo "[datagen] determinism: $n_same re-rendered files (6 PNGs, 2 gt_points.npz, 2 gt_mesh.npz) are byte-identical"
     rm -rf "$TMP"
     "$VPY" tools/datagen/verify.py "$OUT"
 fi

@@ -44,6 +44,59 @@ def write_npz(path: Path, **arrays) -> None:
             zf.writestr(info, buf.getvalue(), compress_type=zipfile.ZIP_DEFLATED, compresslevel=9)
 
 
+MESH_QUANT = 65535  # gt_mesh.npz vertex coordinates: uint16 steps across the bounding box
+
+
+def delta_planes(x: np.ndarray) -> np.ndarray:
+    """uint16 array [..., N] -> uint8 [2, ..., N]: differences along the last axis (the first entry kept),
+    modulo 2^16, as a low-byte and a high-byte plane. Neighbouring entries that change little (a vertex
+    over time, consecutive indices) turn into runs of small numbers, which deflate compresses well."""
+    x = np.asarray(x, dtype=np.uint16)
+    d = np.diff(x, axis=-1, prepend=np.zeros_like(x[..., :1]))  # uint16 arithmetic wraps modulo 2^16
+    return np.stack([d & 0xFF, d >> 8]).astype(np.uint8)
+
+
+def undelta_planes(planes: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`delta_planes`."""
+    d = planes[0].astype(np.uint16) | (planes[1].astype(np.uint16) << 8)
+    return np.cumsum(d, axis=-1, dtype=np.uint16)
+
+
+def write_gt_mesh(path: Path, vertices, faces, times=None) -> float:
+    """Write a ground-truth triangle mesh (one topology, vertices per frame) compactly to ``path``.
+
+    ``vertices`` [V, 3] (static) or [F, V, 3] (one set per frame), ``faces`` [T, 3] vertex indices
+    (V <= 65536). The coordinates are quantised to uint16 ``q`` in the bounding box over all frames,
+    ``world = offset + q * step`` (65535 steps per axis), and, like the face indices, stored through
+    :func:`delta_planes`:
+
+    * ``vertices``: uint8 [2, 3, V] of ``q`` as [3, V] (static; differences along the vertex list) or
+      [2, 3, V, F] of ``q`` as [3, V, F] (dynamic; differences over time);
+    * ``faces``: uint8 [2, 3 T] of the flattened index list;
+    * ``offset``, ``step``: [3] float64; ``times``: [F] float32 (dynamic only).
+
+    Returns the largest coordinate error of the quantisation (<= step / 2)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    assert v.shape[-1] == 3 and f.ndim == 2 and f.shape[1] == 3 and f.min() >= 0 and f.max() < v.shape[-2]
+    assert v.shape[-2] <= 65536, "more than 65536 vertices"
+    lo = v.reshape(-1, 3).min(0)
+    hi = v.reshape(-1, 3).max(0)
+    step = np.maximum(hi - lo, 1e-12) / MESH_QUANT
+    q = np.clip(np.round((v - lo) / step), 0, MESH_QUANT).astype(np.uint16)
+    err = float(np.abs(lo + q * step - v).max())
+    arrays = {
+        "vertices": delta_planes(q.transpose(2, 1, 0) if q.ndim == 3 else q.T),  # [3, V(, F)]
+        "offset": lo,
+        "step": step,
+        "faces": delta_planes(f.reshape(-1).astype(np.uint16)),
+    }
+    if times is not None:
+        arrays["times"] = np.asarray(times, dtype=np.float32)
+    write_npz(path, **arrays)
+    return err
+
+
 def save_png(img: Image.Image, dst: Path) -> None:
     """Deterministic, maximally compressed PNG without text chunks."""
     buf = io.BytesIO()

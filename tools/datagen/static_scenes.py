@@ -205,11 +205,13 @@ def render_static(name: str, out_root: Path, limit: int | None = None) -> dict:
             )
         C.write_json(out / f"transforms_{split}.json", {"camera_angle_x": C.CAMERA_ANGLE_X, "frames": frames})
     t_render = time.time() - t0
-    tris = C.world_triangles(scene)
+    verts, faces = C.world_mesh(scene)
+    tris = verts[faces]
     area = float(C.triangle_areas(tris).sum())
     n = C.points_for_area(area, per_unit_area=5000.0, lo=20000, hi=50000)
     pts = C.SurfaceSampler(tris, n, seed=123)(tris)
     C.write_npz(out / "gt_points.npz", points=pts)
+    C.write_gt_mesh(out / "gt_mesh.npz", verts, faces)
     return {
         "scene": name,
         "kind": "static",
