@@ -25,6 +25,9 @@ from src.rasterizer.cpu import CpuRasterizer
 from src.rasterizer.projection import FRUSTUM_CLAMP, NEAR_PLANE, Projected, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
 from tests.conftest import random_camera, random_scene
+from tests.test_rasterizer_cpu import _render_with_grads
+
+BG = torch.tensor([0.3, 0.5, 0.7])  # background of the render-level parity checks
 
 OUTS = ("means2d", "conics", "depths", "radii", "visible")
 PARAMS = ("means", "quats", "scales")
@@ -396,30 +399,14 @@ def test_clear_errors():
 # rasterizer
 
 
-def _render_grads(rast: CpuRasterizer, s: Splats, cam: Camera, seed: int = 0):
-    attrs = ("means", "scales", "quats", "opacities", "colors")
-    p = {k: getattr(s, k).detach().clone().requires_grad_(True) for k in attrs}
-    out = rast.render(Splats(**p), cam, torch.tensor([0.3, 0.5, 0.7]))
-    out.means2d.retain_grad()
-    g = torch.Generator().manual_seed(seed)
-    H, W, C = out.color.shape
-    loss = ((out.color * torch.rand(H, W, C, generator=g)).sum()
-            + (out.alpha * torch.rand(H, W, generator=g)).sum()
-            + (out.depth * torch.rand(H, W, generator=g) * 0.1).sum())
-    loss.backward()
-    grads = {k: p[k].grad for k in attrs}
-    grads["means2d"] = out.means2d.grad
-    return out, grads
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_rasterizer_fused_vs_torch_projection(seed: int):
     """Bit-identical images (the projection forward is bit-identical), gradients to float rounding;
     the screen-space gradient (densification statistic) reaches the returned means2d."""
     s = random_scene(600, seed=seed, scale_range=(0.01, 0.15))
     cam = random_camera(48, 40, seed=seed)
-    out_t, g_t = _render_grads(CpuRasterizer(projection="torch"), s, cam, seed)
-    out_f, g_f = _render_grads(CpuRasterizer(), s, cam, seed)
+    out_t, g_t = _render_with_grads(CpuRasterizer(projection="torch"), s, cam, BG, seed)
+    out_f, g_f = _render_with_grads(CpuRasterizer(), s, cam, BG, seed)
     for k in ("color", "alpha", "depth", "radii"):
         assert torch.equal(getattr(out_f, k), getattr(out_t, k)), k
     assert torch.equal(g_f["means2d"], g_t["means2d"])

@@ -599,11 +599,12 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
 // ---------------------------------------------------------------------------------------------
 // Python entry points.
 
-void check_input(const at::Tensor& t, const char* name, at::ScalarType st, int64_t n, int64_t cols) {
+// Device, dtype and shape ([n] if cols == 0, else [n, cols]) of an input or incoming gradient.
+void check_device_dtype_shape(const at::Tensor& t, const char* name, at::ScalarType st, int64_t n,
+                              int64_t cols) {
   TORCH_CHECK(t.device().is_cpu(), "project_cpu: ", name, " must be a CPU tensor, got ", t.device());
   TORCH_CHECK(t.scalar_type() == st, "project_cpu: ", name, " must be ", st, " like means, got ",
               t.scalar_type());
-  TORCH_CHECK(t.is_contiguous(), "project_cpu: ", name, " must be contiguous");
   if (cols == 0) {
     TORCH_CHECK(t.dim() == 1 && t.size(0) == n, "project_cpu: ", name, " must be [", n, "], got ",
                 t.sizes());
@@ -611,6 +612,11 @@ void check_input(const at::Tensor& t, const char* name, at::ScalarType st, int64
     TORCH_CHECK(t.dim() == 2 && t.size(0) == n && t.size(1) == cols, "project_cpu: ", name,
                 " must be [", n, ", ", cols, "], got ", t.sizes());
   }
+}
+
+void check_input(const at::Tensor& t, const char* name, at::ScalarType st, int64_t n, int64_t cols) {
+  check_device_dtype_shape(t, name, st, n, cols);
+  TORCH_CHECK(t.is_contiguous(), "project_cpu: ", name, " must be contiguous");
 }
 
 void check_common(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
@@ -664,17 +670,8 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
 // Incoming gradient of the backward: [N] or [N, cols] in the splats' dtype whose elements within a
 // row are contiguous (any row stride, e.g. a column slice of a wider gradient buffer).
 void check_grad(const at::Tensor& t, const char* name, at::ScalarType st, int64_t n, int64_t cols) {
-  TORCH_CHECK(t.device().is_cpu(), "project_cpu: ", name, " must be a CPU tensor, got ", t.device());
-  TORCH_CHECK(t.scalar_type() == st, "project_cpu: ", name, " must be ", st, " like means, got ",
-              t.scalar_type());
-  if (cols == 0) {
-    TORCH_CHECK(t.dim() == 1 && t.size(0) == n, "project_cpu: ", name, " must be [", n, "], got ",
-                t.sizes());
-  } else {
-    TORCH_CHECK(t.dim() == 2 && t.size(0) == n && t.size(1) == cols, "project_cpu: ", name,
-                " must be [", n, ", ", cols, "], got ", t.sizes());
-    TORCH_CHECK(t.stride(1) == 1, "project_cpu: ", name, " must have contiguous rows");
-  }
+  check_device_dtype_shape(t, name, st, n, cols);
+  TORCH_CHECK(cols == 0 || t.stride(1) == 1, "project_cpu: ", name, " must have contiguous rows");
   TORCH_CHECK(t.stride(0) >= 0, "project_cpu: ", name, " has a negative stride");
 }
 
