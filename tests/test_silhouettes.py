@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from scipy import ndimage
 
 from src.core.cameras import Camera, look_at
@@ -42,7 +43,7 @@ from src.data.blender import BlenderDataset
 from src.data.detect import detect_format
 from src.data.dnerf import DNerfDataset, strided
 from src.data.dtu import DTUDataset
-from src.data.multiview import RESFIELDS_4_VIEWS, BlenderMVDataset
+from src.data.multiview import BlenderMVDataset
 from src.data.nerfies import NerfiesDataset
 from src.data.owlii import OwliiDataset
 from src.data.verify import (
@@ -59,13 +60,15 @@ MEAN_BAR = VIEW_BAR = 0.98
 SUPERSAMPLE = 16
 # Where the ground truth of re-exported layouts lives (formats/<layout>/<scene> -> <kind>/<scene>).
 GT_SOURCE = {"owlii_neus": "dynamic_mv", "nerfies": "dynamic_mono", "dtu_neus": "static"}
+# The 4-view protocol cameras (ResFields: 1, 3, 6, 8), read from the config every run uses.
+FOUR_VIEWS = list(OmegaConf.load(DATA.parent / "conf" / "dataset" / "blender_mv.yaml").protocol_cameras[4])
 
 
 def _reader(fmt: str, root: Path):
     if fmt == "blender":
         return BlenderDataset(str(root), n_views=8)
     if fmt == "blender_mv":
-        return BlenderMVDataset(str(root), camera_ids=RESFIELDS_4_VIEWS)
+        return BlenderMVDataset(str(root), camera_ids=FOUR_VIEWS)
     if fmt == "dnerf":
         return DNerfDataset(str(root))
     if fmt == "owlii":

@@ -43,10 +43,6 @@ from src.data.views import select_views
 
 log = logging.getLogger(__name__)
 
-#: The ResFields / SplatFields 4-view protocol on OwlII-like rigs of 10 training cameras.
-RESFIELDS_4_VIEWS = [1, 3, 6, 8]
-
-
 def read_rig(path: Path) -> tuple[dict, list[dict]]:
     """A multi-view transforms JSON and one record per frame: index, time, frame_id, camera_id, centre."""
     data = load_transforms(path)
