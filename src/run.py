@@ -16,6 +16,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from src.init.stage1 import ensure_first_stage
 from src.trainer.guard import DivergenceError
 from src.utils.instantiate import build
 from src.utils.memory import peak_memory_mb
@@ -97,6 +98,10 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         scene = dataset.load().to(device)
         record["keys"]["scene"] = scene.name
         record["views"] = scene.view_ids
+        stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
+        if stage1 is not None:
+            record["stage1"] = stage1
+            generator = seed_everything(cfg.seed)  # the same stream whether stage 1 was trained or read
         capacity = build(cfg.capacity) if cfg.get("capacity") else None
         if capacity is not None and capacity.enabled:
             cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
@@ -115,6 +120,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
             "peak_mem_mb": peak_memory_mb(device), **ev,
             **{f"iter_{k}": v for k, v in train_stats["timing"].items()},
         }
+        if stage1 is not None:  # the 3DGS first stage is part of this method's training cost
+            record["metrics"]["stage1_train_s"] = stage1["train_s"]
         record["per_view"] = per_view
         if per_frame is not None:
             record["per_frame"] = per_frame

@@ -66,3 +66,16 @@ def test_dynamic_hull_first_frame_or_union_of_frames(scene):
     # split evenly over the frames (201 + 200 points), each part inside its own frame's hull
     assert in0(union[:201]).all() and in1(union[201:]).all()
     assert (in1(union) & ~in0(union)).any()
+
+
+def test_hull_without_masks_samples_the_box_or_refuses(scene, caplog):
+    from dataclasses import replace
+
+    unmasked = replace(scene, train=[replace(v, mask=None) for v in scene.train])
+    pts = HullInit(n_points=400, box=0.5)(unmasked, torch.Generator().manual_seed(0))
+    assert pts.shape == (400, 3) and pts.abs().max() <= 0.5
+    assert "sampling the box" in caplog.text and scene.name in caplog.text
+    with pytest.raises(ValueError, match="init=hull needs masks.*use init=box"):
+        HullInit(n_points=10, without_masks="error")(unmasked, torch.Generator())
+    with pytest.raises(ValueError, match="without_masks"):
+        HullInit(without_masks="ignore")

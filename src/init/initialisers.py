@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from pathlib import Path
 
@@ -10,6 +11,8 @@ from torch import Tensor
 
 from src.data.base import Scene
 from src.data.hull import sample_hull
+
+log = logging.getLogger(__name__)
 
 
 class Initialiser(ABC):
@@ -31,20 +34,28 @@ class HullInit(Initialiser):
             stays in place, as in OwlII); False = the union of the per-frame hulls, ``n_points`` split
             evenly over the frames (for subjects that travel further than their own width, where
             splats of frame 0 never overlap later frames and their gradients only fade them out).
+        without_masks: what to do when training views have no mask (Nerfies / NeRF-DS layouts):
+            ``"box"`` = sample the cube as ``init=box`` does, with a warning; ``"error"`` = refuse.
     """
 
     def __init__(self, n_points: int = 100_000, threshold: float = 0.0, box: float = 1.0,
-                 first_frame_only: bool = True) -> None:
+                 first_frame_only: bool = True, without_masks: str = "box") -> None:
+        if without_masks not in ("box", "error"):
+            raise ValueError(f"init.without_masks must be 'box' or 'error', got {without_masks!r}")
         self.n_points = n_points
         self.threshold = threshold
         self.box = box
         self.first_frame_only = first_frame_only
+        self.without_masks = without_masks
 
     def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
         views = scene.train
         if any(v.mask is None for v in views):
-            raise ValueError(f"init=hull needs masks, but scene {scene.name} has training views without one: "
-                             "use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
+            msg = f"init=hull needs masks, but scene {scene.name} has training views without one"
+            if self.without_masks == "error":
+                raise ValueError(f"{msg}: use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
+            log.warning("%s: sampling the box [-%g, %g]^3 instead, as init=box does", msg, self.box, self.box)
+            return BoxInit(self.n_points, self.box)(scene, generator)
         frames = sorted({v.camera.frame_id for v in views})
         if scene.is_dynamic and self.first_frame_only:
             frames = frames[:1]
@@ -100,7 +111,8 @@ class FromRunInit(Initialiser):
             raise FileNotFoundError(
                 f"{path} not found: produce it with `python -m src.run +experiment=gs3d "
                 f"dataset.root={scene.meta.get('root', '<scene>')} dataset.n_views={len(scene.train)} "
-                f"hydra.run.dir={self.run_dir}` (or +experiment=gs3d_stage1 with the same dataset and seed)"
+                f"hydra.run.dir={self.run_dir}` (or +experiment=gs3d_stage1 with the same dataset and seed; "
+                "+experiment=splatfields3d_2stage trains it itself unless stage1.auto=false)"
             )
         pts = read_ply(path).means.float()
         if self.hull_filter:

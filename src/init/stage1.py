@@ -1,0 +1,128 @@
+"""The first stage of the paper's two-stage Blender protocol, trained in-process when it is missing.
+
+SplatFields3D on Blender scenes starts from the splat centres of a finished 3DGS run (reference
+``run_blender.sh``: 3DGS, then SplatFields on its points). ``+experiment=splatfields3d_2stage`` reads
+them from ``init.run_dir`` (``paths.stage1_dir``, one directory per scene / views / iterations / seed);
+with ``stage1.auto=true`` a missing first stage is trained here, with exactly the configuration of
+``+experiment=gs3d_stage1`` (``stage1.model/optim/strategy/init`` are the gs3d groups), so one command
+runs both stages and a sweep needs no separate first pass.
+
+Concurrency: jobs of one sweep that share a first stage (same scene, views, iterations, seed) take a
+file lock; the first trains it in ``<dir>.partial/`` (checkpointed, so a killed job resumes it) and
+renames it into place when done, the others wait and read it.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import logging
+import os
+import shutil
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from src.data.base import Scene
+from src.utils.record import read_json, write_json
+from src.utils.seed import seed_everything
+
+log = logging.getLogger(__name__)
+
+#: Keys of a first-stage record that must match the run that reads it.
+MATCH_KEYS = ("scene", "n_views", "seed", "iterations", "n_points")
+
+
+def first_stage_config(cfg: DictConfig) -> DictConfig:
+    """``cfg`` with the model, optimiser, strategy, initialisation and losses of the 3DGS first stage.
+
+    Mirrors ``conf/experiment/gs3d.yaml``: method gs3d, L_norm and L_Moran off, ``stage1.iterations``.
+    """
+    iterations = int(cfg.stage1.iterations)
+    c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+    with open_dict(c):
+        c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # ${init.n_points} of stage 2, resolved now
+        for group in ("model", "optim", "strategy", "init"):
+            c[group] = c.stage1[group]
+        c.method = "gs3d"
+        c.loss.lambda_norm = 0.0
+        c.loss.lambda_moran = 0.0
+        c.trainer.iterations = iterations
+        c.capacity = None
+        del c["stage1"]
+    return c
+
+
+def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
+    """What a usable first stage for ``cfg`` on ``scene`` must have been trained with."""
+    return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
+            "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points)}
+
+
+def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
+    """The first-stage record in ``run_dir``, or None if it has no ``splats.ply``.
+
+    Raises ValueError naming the directory and the differing keys when it was trained for another setup.
+    """
+    if not (run_dir / "splats.ply").is_file():
+        return None
+    rec = read_json(run_dir / "metrics.json") or {}
+    keys = rec.get("stage1_keys")
+    if keys is None:  # written by `+experiment=gs3d_stage1` on the command line
+        keys = {**rec.get("keys", {}), "n_points": None}
+    diff = {k: (keys.get(k), v) for k, v in expected.items() if keys.get(k) is not None and keys.get(k) != v}
+    if diff:
+        raise ValueError(f"{run_dir} holds a first stage trained with other settings "
+                         f"({', '.join(f'{k}: {a} != {b}' for k, (a, b) in diff.items())}); "
+                         "delete it or point paths.stage1_dir elsewhere")
+    return rec
+
+
+@contextmanager
+def _locked(path: Path):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
+
+
+def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit: Callable) -> dict | None:
+    """Make sure ``init.run_dir`` holds the 3DGS first stage for this run; train it if missing.
+
+    Args:
+        cfg: the run's config; acts only when it has ``stage1.auto: true`` and ``init.run_dir``.
+        scene: the loaded scene (the first stage trains on the same training views).
+        fit: ``src.run.fit_scene`` (model, rasterizer, stats) = fit(cfg, scene, run_dir, device, generator).
+
+    Returns:
+        ``{"dir", "train_s", "trained_now"}`` for the run record, or None when not applicable.
+    """
+    if not (cfg.get("stage1") and cfg.stage1.get("auto") and cfg.init.get("run_dir")):
+        return None
+    from src.run import write_artifacts
+
+    final = Path(str(cfg.init.run_dir))
+    expected = expected_keys(cfg, scene)
+    with _locked(final.with_name(final.name + ".lock")):
+        rec = check_first_stage(final, expected)
+        trained_now = rec is None
+        if trained_now:
+            partial = final.with_name(final.name + ".partial")
+            log.info("first stage missing: training 3DGS for %d iterations in %s", expected["iterations"], partial)
+            c1 = first_stage_config(cfg)
+            model, _, stats = fit(c1, scene, partial, device, seed_everything(int(cfg.seed)))
+            write_artifacts(model, partial)
+            rec = {"status": "ok", "method": "gs3d", "experiment": "gs3d_stage1 (in-process)",
+                   "keys": {k: expected[k] for k in ("scene", "n_views", "seed", "iterations")},
+                   "stage1_keys": expected, "metrics": {"train_s": stats["train_s"], "n_splats": model.n_splats}}
+            write_json(partial / "metrics.json", rec)
+            (partial / "checkpoint.pt").unlink(missing_ok=True)
+            if final.exists():  # a half-written directory from an older layout: replace it
+                shutil.rmtree(final)
+            os.replace(partial, final)
+    return {"dir": str(final), "train_s": (rec.get("metrics") or {}).get("train_s"), "trained_now": trained_now}
