@@ -75,7 +75,7 @@ def test_hull_without_masks_samples_the_box_or_refuses(scene, caplog):
     pts = HullInit(n_points=400, box=0.5)(unmasked, torch.Generator().manual_seed(0))
     assert pts.shape == (400, 3) and pts.abs().max() <= 0.5
     assert "sampling the box" in caplog.text and scene.name in caplog.text
-    with pytest.raises(ValueError, match="init=hull needs masks.*use init=box"):
+    with pytest.raises(ValueError, match=r"init=hull needs masks.*use init=box"):
         HullInit(n_points=10, without_masks="error")(unmasked, torch.Generator())
     with pytest.raises(ValueError, match="without_masks"):
         HullInit(without_masks="ignore")
