@@ -29,6 +29,8 @@ if not OmegaConf.has_resolver("repo"):
     OmegaConf.register_new_resolver("repo", lambda: str(REPO_ROOT))
 if not OmegaConf.has_resolver("basename"):
     OmegaConf.register_new_resolver("basename", lambda p: Path(str(p)).name)
+if not OmegaConf.has_resolver("half"):  # narrow heads are half the width of the wide ones (B.2: 64 vs 128)
+    OmegaConf.register_new_resolver("half", lambda w: max(8, int(w) // 2))
 
 
 def resolve_device(name: str) -> torch.device:

@@ -7,6 +7,7 @@ import json
 import pytest
 from omegaconf import OmegaConf
 
+import src.run  # noqa: F401 - registers the ${repo:} and ${half:} resolvers
 from src.init.stage1 import check_first_stage
 from src.io.ply import read_ply
 from tests.test_run import run_cli
