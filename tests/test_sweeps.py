@@ -68,7 +68,8 @@ def test_sweep_file_structure(name):
     if "+ci" in keys:  # `+ci=smoke` must be applied after the experiment (conf/ci/smoke.yaml)
         assert keys.index("+ci") > keys.index("+experiment")
     # every sweep says which table it regenerates (or that it is not one)
-    assert re.search(r"Tab\. [C0-9]|Sec\. [0-9]|PLACEHOLDER|no paper table|CI smoke", text.split("defaults:")[0]), "header comment"
+    header = text.split("defaults:")[0]
+    assert re.search(r"Tab\. [C0-9]|Sec\. [0-9]|PLACEHOLDER|no paper table|CI smoke", header), "header comment"
     report = data["report"]
     assert set(report) <= REPORT_FIELDS, set(report) - REPORT_FIELDS
     spec = ReportSpec.from_mapping(report)
