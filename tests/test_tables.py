@@ -420,3 +420,16 @@ def test_in_memory_records_running_and_nan(tmp_path: Path) -> None:
     assert "1 ok run(s) have no finite value for metric 'psnr'" in text
     assert "n_views=4, seed=2 — running" in text
     assert "<record 3>: status 'ok' but missing key(s) 'keys', 'metrics'" in text
+
+
+def test_ranks_are_per_scene_when_scene_is_a_row_key(tmp_path: Path) -> None:
+    # scene B is easier: without per-scene ranking both B rows would outrank both A rows
+    for i, (method, scene, psnr) in enumerate([("a", "A", 20.0), ("b", "A", 21.0), ("a", "B", 30.0),
+                                                ("b", "B", 29.0)]):
+        write_run(tmp_path, str(i), method=method, scene=scene, psnr=psnr)
+    text = make_tables([tmp_path], {"metrics": ["psnr"], "rows": ["method", "keys.scene"]})
+    cells = {(r[0], r[1]): r[2] for r in (line.strip("|").split("|") for line in text.splitlines()
+                                          if line.startswith("| a |") or line.startswith("| b |"))
+             for r in [[c.strip() for c in r]]}
+    assert cells[("b", "A")].startswith("**21.00**") and cells[("a", "A")].startswith("_20.00_")
+    assert cells[("a", "B")].startswith("**30.00**") and cells[("b", "B")].startswith("_29.00_")

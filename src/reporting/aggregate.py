@@ -160,7 +160,8 @@ class Table:
 
     Attributes:
         metric: the metric of every column, or None when the columns are the metrics.
-        ranks: (row, column index) → 1, 2 or 3 for the best three cells of each column.
+        ranks: (row, column index) → 1, 2 or 3 for the best three cells of each column, among rows of
+            the same scene / n_views when those are row keys.
         failures: row → (failed runs, all runs) over every column and seed of the row.
         stability: row → mean over the row's cells of the seed-to-seed sample std (None if no cell
             has two or more runs, or when the columns hold different metrics).
@@ -364,12 +365,19 @@ def _make_table(
             notes.append(f"{count} ok run(s) have no finite value for metric '{name}'")
 
     directions = tuple(spec.is_higher_better(c.metric) for c in columns)
+    # Rows that differ in a context key (scene, n_views) are different problems: rank methods only
+    # against rows of the same context, as the paper ranks per scene / view-count column.
+    context = list(_context_positions(spec.rows).values())
     ranks: dict[tuple[Key, int], int] = {}
     for j, higher in enumerate(directions):
-        scored = [(row, cells[(row, j)].mean) for row in rows if cells[(row, j)].n]
-        for row, rank in _rank(scored, higher).items():
-            if rank <= 3:
-                ranks[(row, j)] = rank
+        by_context: dict[Key, list[tuple[Key, float]]] = {}
+        for row in rows:
+            if cells[(row, j)].n:
+                by_context.setdefault(tuple(row[i] for i in context), []).append((row, cells[(row, j)].mean))
+        for scored in by_context.values():
+            for row, rank in _rank(scored, higher).items():
+                if rank <= 3:
+                    ranks[(row, j)] = rank
 
     stability: dict[Key, float | None] = {}
     for row in rows:

@@ -126,7 +126,8 @@ def _legend(table: Table) -> str:
         direction = ", ".join(f"{c.metric} {_arrow(h)}" for c, h in pairs)
     return (
         "Mean ± sample std over seeds (n = ok runs); – = no successful run. "
-        f"Best per column among these runs: **1st**, _2nd_, 3rd³ ({direction}); quoted rows are not ranked. "
+        f"Best per column among these runs (per scene / view count when rows carry them): **1st**, _2nd_, "
+        f"3rd³ ({direction}); quoted rows are not ranked. "
         "failed = failed/total runs of the row"
         + ("; seed std = mean seed-to-seed std of the row." if table.metric is not None else ".")
     )
