@@ -33,12 +33,14 @@ class SplatLoss(Objective):
         moran_attributes: splat attributes the Moran loss acts on.
         moran_k: neighbourhood size N (B.3: 5).
         moran_every: recompute the kNN neighbourhoods every this many iterations (positions move slowly).
+        moran_center: subtract the attribute mean as the textbook Moran's I (B.4) and the evaluation do;
+            False = the reference's training loss, which does not centre (a quirk kept as the default).
     """
 
     def __init__(self, lambda_dssim: float = 0.2, lambda_mask: float = 0.1, lambda_norm: float = 0.0,
                  lambda_moran: float = 0.0,
                  moran_attributes: tuple[str, ...] = ("colors", "opacities", "scales", "quats"),
-                 moran_k: int = 5, moran_every: int = 100) -> None:
+                 moran_k: int = 5, moran_every: int = 100, moran_center: bool = False) -> None:
         self.lambda_dssim = lambda_dssim
         self.lambda_mask = lambda_mask
         self.lambda_norm = lambda_norm
@@ -46,6 +48,7 @@ class SplatLoss(Objective):
         self.moran_attributes = tuple(moran_attributes)
         self.moran_k = moran_k
         self.moran_every = moran_every
+        self.moran_center = moran_center
         self._nn: Tensor | None = None
         self._nn_iter = -1
 
@@ -87,6 +90,6 @@ class SplatLoss(Objective):
         vals = []
         for name in self.moran_attributes:
             a = getattr(s, name)
-            vals.append(morans_i(s.means.detach(), a, k=self.moran_k, center=False, neighbours=self._nn))
+            vals.append(morans_i(s.means.detach(), a, k=self.moran_k, center=self.moran_center, neighbours=self._nn))
         score = torch.stack(vals).mean()
         return 1.0 - score.clamp(0.0, 1.0)
