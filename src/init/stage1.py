@@ -43,7 +43,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
     with open_dict(c):
-        c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # ${init.n_points} of stage 2, resolved now
+        c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # resolved before init is replaced below
         for group in ("model", "optim", "strategy", "init"):
             c[group] = c.stage1[group]
         c.method = "gs3d"
