@@ -17,6 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from src.init.stage1 import ensure_first_stage
+from src.io.ply import write_baked_ply
 from src.trainer.guard import DivergenceError
 from src.utils.instantiate import build
 from src.utils.memory import peak_memory_mb
@@ -130,7 +131,7 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         if unavailable:
             record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
         record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
-        write_artifacts(model, run_dir)
+        write_baked_ply(model, run_dir)
         record["status"] = "ok"
         log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
                  record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
@@ -174,18 +175,6 @@ _NEUTRAL_OVERRIDES = ("skip_if_done", "threads", "trainer.progress", "trainer.lo
 def _identity_overrides(overrides: list[str]) -> list[str]:
     """The overrides that identify a job: ``overrides`` without the :data:`_NEUTRAL_OVERRIDES` keys."""
     return [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in _NEUTRAL_OVERRIDES]
-
-
-def write_artifacts(model, run_dir: Path) -> None:
-    """The baked splat set as a 3DGS PLY (``splats.ply``), read by ``init=from_run`` and viewers."""
-    from src.io.ply import write_ply
-
-    try:
-        baked = model.bake()
-    except NotImplementedError:
-        return
-    if baked.colors.shape[1] == 3:
-        write_ply(run_dir / "splats.ply", baked.to("cpu"))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")

@@ -26,6 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from src.data.base import Scene
+from src.io.ply import write_baked_ply
 from src.utils.record import read_json, write_json
 from src.utils.seed import seed_everything
 
@@ -104,8 +105,6 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
     """
     if not (cfg.get("stage1") and cfg.stage1.get("auto") and cfg.init.get("run_dir")):
         return None
-    from src.run import write_artifacts
-
     final = Path(str(cfg.init.run_dir))
     expected = expected_keys(cfg, scene)
     with _locked(final.with_name(final.name + ".lock")):
@@ -116,7 +115,7 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
             log.info("first stage missing: training 3DGS for %d iterations in %s", expected["iterations"], partial)
             c1 = first_stage_config(cfg)
             model, _, stats = fit(c1, scene, partial, device, seed_everything(int(cfg.seed)))
-            write_artifacts(model, partial)
+            write_baked_ply(model, partial)
             rec = {"status": "ok", "method": "gs3d", "experiment": "gs3d_stage1 (in-process)",
                    "keys": {k: expected[k] for k in ("scene", "n_views", "seed", "iterations")},
                    "stage1_keys": expected, "metrics": {"train_s": stats["train_s"], "n_splats": model.n_splats}}

@@ -100,3 +100,16 @@ def read_ply(path: Path | str) -> PlySplats:
         colors=(0.5 + C0 * get(["f_dc_0", "f_dc_1", "f_dc_2"])),
     )
     return PlySplats(splats=splats, sh_rest=sh_rest)
+
+
+def write_baked_ply(model, run_dir: Path) -> None:
+    """The model's baked splat set as ``<run_dir>/splats.ply`` (read by ``init=from_run`` and viewers).
+
+    Skipped for models that cannot bake and for non-RGB colour channels.
+    """
+    try:
+        baked = model.bake()
+    except NotImplementedError:
+        return
+    if baked.colors.shape[1] == 3:
+        write_ply(Path(run_dir) / "splats.ply", baked.to("cpu"))
