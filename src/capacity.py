@@ -24,9 +24,11 @@ from src.eval.evaluator import Evaluator
 
 log = logging.getLogger(__name__)
 
-# field widths that follow the main width w: the big heads use w, the small ones w / 2 (B.2: 128 / 64)
-WIDE_HEADS = ("deform_width", "color_width", "flow_width")
-NARROW_HEADS = ("scale_width", "opacity_width", "rotation_width")
+
+
+def has_field(cfg: DictConfig) -> bool:
+    """Whether the configured model has neural fields (a backbone; field=none leaves an empty one)."""
+    return OmegaConf.select(cfg, "model.network.backbone._target_") is not None
 
 
 class FixedCapacity:
@@ -40,8 +42,8 @@ class CapacitySearch:
 
     Args:
         budgets: candidate splat budgets (``schedule.max_splats`` and the initial point count), ascending.
-        widths: candidate widths of the large heads (small heads get half), ascending; ignored for
-            models without fields.
+        widths: candidate values of ``field_budget.head_width`` (the large heads' width; conf/model/
+            splatfields.yaml gives the small heads half), ascending; ignored for models without fields.
         holdout_every: hold out every k-th training view (at least one) for validation.
         search_iterations: training iterations of each search run.
         min_gain_db: stop growing when the held-out PSNR improves by less than this.
@@ -68,18 +70,21 @@ class CapacitySearch:
 
     @staticmethod
     def apply(cfg: DictConfig, budget: int | None, width: int | None) -> DictConfig:
-        """A copy of ``cfg`` with the splat budget and head widths set."""
+        """A copy of ``cfg`` with the splat budget and ``field_budget.head_width`` set.
+
+        The head widths follow ``field_budget.head_width`` through the interpolations in
+        conf/model/splatfields.yaml, so ``cfg`` must not be resolved yet.
+        """
         out = copy.deepcopy(cfg)
         with open_dict(out):
             if budget is not None:
                 out.schedule.max_splats = int(budget)
                 out.init.n_points = int(budget)
-            net = OmegaConf.select(out, "model.network")
-            if width is not None and net is not None:
-                for k in WIDE_HEADS:
-                    net[k] = int(width)
-                for k in NARROW_HEADS:
-                    net[k] = max(8, int(width) // 2)
+            if width is not None and has_field(out):
+                if OmegaConf.select(out, "field_budget.head_width") is None:
+                    raise ValueError("capacity=auto: the config has no field_budget.head_width to search over "
+                                     "(set by conf/scale/*.yaml)")
+                out.field_budget.head_width = int(width)
         return out
 
     def _score(self, cfg: DictConfig, part: Scene, out_dir: Path, device, fit: Callable) -> dict:
@@ -116,7 +121,7 @@ class CapacitySearch:
         budget = self._grow(self.budgets, lambda b: self.apply(cfg, b, None), part, out_dir, device, fit, trace,
                             "max_splats")
         chosen: dict = {"max_splats": int(budget)}
-        if OmegaConf.select(cfg, "model.network") is not None:
+        if has_field(cfg):
             width = self._grow(self.widths, lambda w: self.apply(cfg, budget, w), part, out_dir, device, fit, trace,
                                "width")
             chosen["width"] = int(width)

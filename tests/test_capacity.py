@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import torch
 from omegaconf import OmegaConf
 
+import src.run  # noqa: F401  (registers the ${half:} resolver of conf/model/splatfields.yaml)
 from src.capacity import CapacitySearch
 
 
@@ -49,12 +50,25 @@ def test_greedy_growth_stops_when_gain_is_small(monkeypatch):
 
     monkeypatch.setattr(search, "_score", fake_score)
     cfg = OmegaConf.create({"schedule": {"max_splats": 50_000}, "init": {"n_points": 10_000}, "seed": 0,
-                            "model": {"network": {k: 128 for k in ("deform_width", "color_width", "flow_width",
-                                                                    "scale_width", "opacity_width",
-                                                                    "rotation_width")}}})
+                            "field_budget": {"head_width": 128},
+                            "model": {"network": {"backbone": {"_target_": "src.fields.backbones.NoBackbone"},
+                                                  "color_width": "${field_budget.head_width}",
+                                                  "scale_width": "${half:${field_budget.head_width}}"}}})
     scene = _Scene(train=[_View(i) for i in range(8)], test=[], val=[])
     new_cfg, block = search.choose(cfg, scene, __import__("pathlib").Path("/tmp/cap_test"), "cpu", None)
     assert block["chosen"] == {"max_splats": 2000, "width": 64}
     assert new_cfg.schedule.max_splats == 2000 and new_cfg.init.n_points == 2000
     assert new_cfg.model.network.color_width == 64 and new_cfg.model.network.scale_width == 32
     assert [r.get("max_splats") for r in block["trace"][:3]] == [1000, 2000, 4000]
+
+
+def test_models_without_fields_search_only_the_budget(monkeypatch):
+    """3DGS carries an empty ``model.network`` placeholder (field=none): no width trials are run."""
+    search = CapacitySearch(budgets=[1000, 2000], widths=[32, 64], min_gain_db=0.1)
+    monkeypatch.setattr(search, "_score", lambda cfg, *a: {"val_psnr": float(cfg.schedule.max_splats) / 1000})
+    cfg = OmegaConf.create({"schedule": {"max_splats": 50_000}, "init": {"n_points": 10_000}, "seed": 0,
+                            "model": {"network": {"backbone": {}}, "flow": {}}})
+    scene = _Scene(train=[_View(i) for i in range(8)], test=[], val=[])
+    new_cfg, block = search.choose(cfg, scene, __import__("pathlib").Path("/tmp/cap_test"), "cpu", None)
+    assert new_cfg.schedule.max_splats == 2000
+    assert block["chosen"] == {"max_splats": 2000} and len(block["trace"]) == 2
