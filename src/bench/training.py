@@ -5,6 +5,8 @@ method's own) builds the model from the same configs a run uses, renders one 100
 with the rasterizer ``auto`` picks, and times :meth:`src.trainer.Trainer.train_step` split into
 field (splat prediction), rasterizer (forward), backward and optimizer. Densification is off so the
 splat count stays equal across methods. It also bakes the model and times rendering at 200 px.
+``--head-widths`` repeats the methods with neural fields at other ``field_budget.head_width`` values
+(the size a capacity search may choose), so the SplatFields ÷ 3DGS ratio can be read per width.
 Timings are medians over the timed iterations; compare them as ratios within one run.
 """
 
@@ -36,8 +38,11 @@ def _rss_peak_mb() -> float:
 
 
 def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
-            rasterizer: str = "auto") -> dict:
-    """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process)."""
+            rasterizer: str = "auto", head_width: int | None = None) -> dict:
+    """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process).
+
+    ``head_width`` overrides ``field_budget.head_width`` (wide heads; narrow heads get half).
+    """
     from dataclasses import replace
 
     import torch
@@ -54,7 +59,10 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"+experiment={method}", f"rasterizer={rasterizer}"])
+        overrides = [f"+experiment={method}", f"rasterizer={rasterizer}"]
+        if head_width is not None:
+            overrides.append(f"field_budget.head_width={head_width}")
+        cfg = compose(config_name="config", overrides=overrides)
     # Time the phase that dominates training: dynamic models at one of BENCH_FRAMES frames, with the
     # deformation on (Deformable-3DGS keeps it off during its warm-up; the warm-up is skipped here).
     dynamic = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or "warm_up" in cfg.model
@@ -85,7 +93,9 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
                 times[k].append(1000 * step["timing"][k])
     ms = {k: statistics.median(v) for k, v in times.items()}
     totals = [sum(times[k][i] for k in PARTS) for i in range(iters)]
-    row = {"method": method, "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
+    has_field = OmegaConf.select(cfg, "model.network.backbone._target_") is not None
+    row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field else None,
+           "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
            getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
            "iter_ms_min": min(totals)}
     model.eval()
@@ -102,28 +112,32 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     return row
 
 
-def _run_isolated(method: str, n: int, args: argparse.Namespace) -> dict:
+def _run_isolated(method: str, n: int, args: argparse.Namespace, head_width: int | None = None) -> dict:
     cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
            "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width),
            "--rasterizer", args.rasterizer]
+    if head_width is not None:
+        cmd += ["--head-width-single", str(head_width)]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     if p.returncode != 0:
-        return {"method": method, "n_splats": n, "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
+        return {"method": method, "head_width": head_width, "n_splats": n,
+                "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
 def print_table(rows: list[dict]) -> None:
-    hdr = f"{'method':<15} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
+    hdr = f"{'method':<15} {'width':>5} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
     hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'peak MB':>8} {'FPS@200':>8}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
         if "error" in r:
-            print(f"{r['method']:<15} {r['n_splats']:>7} failed: {r['error']}")
+            print(f"{r['method']:<15} {r.get('head_width') or '-':>5} {r['n_splats']:>7} failed: {r['error']}")
             continue
         parts = " ".join(f"{r['ms'][k]:>10.1f}" for k in PARTS)
         ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
-        print(f"{r['method']:<15} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} "
+        name = f"{r['method']:<15} {r.get('head_width') or '-':>5}"
+        print(f"{name} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} "
               f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f}")
 
 
@@ -139,17 +153,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=100)
     ap.add_argument("--fps-width", type=int, default=200)
     ap.add_argument("--rasterizer", default="auto", help="rasterizer config (auto, cpu, torch_ref, gsplat)")
+    ap.add_argument("--head-widths", default="",
+                    help="also time the methods with neural fields at these field_budget.head_width values, "
+                         "e.g. 64,32 (the configured width is always timed)")
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
+    ap.add_argument("--head-width-single", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
-                                 args.fps_width, args.rasterizer)))
+                                 args.fps_width, args.rasterizer, args.head_width_single)))
         return 0
     methods = ["gs3d", "splatfields3d"] if args.quick else args.methods.split(",")
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
     if args.quick:
         args.iters, args.warmup = 3, 1
     rows = [_run_isolated(m, n, args) for n in sizes for m in methods]
+    extra_widths = [int(w) for w in args.head_widths.split(",") if w]
+    rows += [_run_isolated(r["method"], n, args, w) for n in sizes for w in extra_widths for r in list(rows)
+             if r["n_splats"] == n and r.get("head_width") not in (None, w)]
     for r in rows:
         base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
                     None)
