@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 from src.core.splats import Splats
 from src.losses.moran import MoranLoss, covariance_features, knn_indices, morans_i
@@ -150,6 +152,8 @@ def test_training_loss_centring_is_a_config_choice():
                    quats=torch.rand(n, 4, generator=g) + 0.1, opacities=torch.rand(n, generator=g) + 0.1,
                    colors=torch.rand(n, 3, generator=g) + 0.1)
     # i.i.d. positive attributes: the reference's uncentred I is high (loss small), the centred I ≈ 0
-    quirk = SplatLoss(lambda_moran=1.0)._moran(noisy, 0)
-    textbook = SplatLoss(lambda_moran=1.0, moran_center=True)._moran(noisy, 0)
+    quirk = SplatLoss(lambda_moran=1.0, moran_center=False)._moran(noisy, 0)
+    textbook = SplatLoss(lambda_moran=1.0)._moran(noisy, 0)  # the default: textbook B.4, the paper's intent
     assert quirk.item() < 0.35 < 0.8 < textbook.item()
+    conf = yaml.safe_load((Path(__file__).resolve().parents[1] / "conf" / "loss" / "default.yaml").read_text())
+    assert conf["moran_center"] is True
