@@ -31,6 +31,12 @@ def has_field(cfg: DictConfig) -> bool:
     return OmegaConf.select(cfg, "model.network.backbone._target_") is not None
 
 
+def has_triplane(cfg: DictConfig) -> bool:
+    """Whether the backbone's tri-plane resolution follows ``field_budget.triplane_up_blocks``."""
+    return (OmegaConf.select(cfg, "model.network.backbone.n_up_blocks") is not None
+            and OmegaConf.select(cfg, "field_budget.triplane_up_blocks") is not None)
+
+
 class FixedCapacity:
     """No search: the configured sizes are used as they are."""
 
@@ -38,12 +44,16 @@ class FixedCapacity:
 
 
 class CapacitySearch:
-    """Greedy search over splat budgets, then field widths, on held-out training views.
+    """Greedy search over splat budgets, then head widths, then tri-plane resolution, on held-out
+    training views. Each dimension grows (with the earlier ones fixed at their choice) until the gain
+    falls below ``min_gain_db``; a dimension with a single candidate is taken without a trial.
 
     Args:
         budgets: candidate splat budgets (``schedule.max_splats`` and the initial point count), ascending.
         widths: candidate values of ``field_budget.head_width`` (the large heads' width; conf/model/
             splatfields.yaml gives the small heads half), ascending; ignored for models without fields.
+        plane_blocks: candidate values of ``field_budget.triplane_up_blocks`` (tri-plane side
+            20·2^k), ascending; ignored for backbones without tri-planes. Empty = keep the configured one.
         holdout_every: hold out every k-th training view (at least one) for validation.
         search_iterations: training iterations of each search run.
         min_gain_db: stop growing when the held-out PSNR improves by less than this.
@@ -52,9 +62,11 @@ class CapacitySearch:
     enabled = True
 
     def __init__(self, budgets: list[int] = (2500, 5000, 10000, 20000), widths: list[int] = (32, 64, 128),
-                 holdout_every: int = 4, search_iterations: int = 600, min_gain_db: float = 0.1) -> None:
+                 plane_blocks: list[int] = (), holdout_every: int = 4, search_iterations: int = 600,
+                 min_gain_db: float = 0.1) -> None:
         self.budgets = sorted(budgets)
         self.widths = sorted(widths)
+        self.plane_blocks = sorted(plane_blocks)
         self.holdout_every = holdout_every
         self.search_iterations = search_iterations
         self.min_gain_db = min_gain_db
@@ -69,11 +81,13 @@ class CapacitySearch:
         return replace(scene, train=train, test=val, val=[]), replace(scene, train=val, test=val, val=[])
 
     @staticmethod
-    def apply(cfg: DictConfig, budget: int | None, width: int | None) -> DictConfig:
-        """A copy of ``cfg`` with the splat budget and ``field_budget.head_width`` set.
+    def apply(cfg: DictConfig, budget: int | None, width: int | None = None,
+              plane_blocks: int | None = None) -> DictConfig:
+        """A copy of ``cfg`` with the splat budget, ``field_budget.head_width`` and
+        ``field_budget.triplane_up_blocks`` set (None = leave as configured).
 
-        The head widths follow ``field_budget.head_width`` through the interpolations in
-        conf/model/splatfields.yaml, so ``cfg`` must not be resolved yet.
+        The heads and the backbone follow ``field_budget`` through the interpolations in
+        conf/model/splatfields.yaml and conf/field/cnn_triplane.yaml, so ``cfg`` must not be resolved yet.
         """
         out = copy.deepcopy(cfg)
         with open_dict(out):
@@ -85,6 +99,8 @@ class CapacitySearch:
                     raise ValueError("capacity=auto: the config has no field_budget.head_width to search over "
                                      "(set by conf/scale/*.yaml)")
                 out.field_budget.head_width = int(width)
+            if plane_blocks is not None and has_triplane(out):
+                out.field_budget.triplane_up_blocks = int(plane_blocks)
         return out
 
     def _score(self, cfg: DictConfig, part: Scene, out_dir: Path, device, fit: Callable) -> dict:
@@ -104,6 +120,8 @@ class CapacitySearch:
 
     def _grow(self, values, make_cfg, part, out_dir, device, fit, trace, label) -> object:
         best, best_psnr = values[0], -math.inf
+        if len(values) == 1:
+            return best
         for v in values:
             row = self._score(make_cfg(v), part, out_dir / f"{label}_{v}", device, fit)
             row[label] = v
@@ -118,13 +136,17 @@ class CapacitySearch:
         """Run the search; returns (cfg with the chosen sizes, the record's ``capacity`` block)."""
         part, val = self.split(scene)
         trace: list[dict] = []
-        budget = self._grow(self.budgets, lambda b: self.apply(cfg, b, None), part, out_dir, device, fit, trace,
+        budget = self._grow(self.budgets, lambda b: self.apply(cfg, b), part, out_dir, device, fit, trace,
                             "max_splats")
         chosen: dict = {"max_splats": int(budget)}
         if has_field(cfg):
             width = self._grow(self.widths, lambda w: self.apply(cfg, budget, w), part, out_dir, device, fit, trace,
                                "width")
             chosen["width"] = int(width)
-        new_cfg = self.apply(cfg, chosen["max_splats"], chosen.get("width"))
+            if self.plane_blocks and has_triplane(cfg):
+                blocks = self._grow(self.plane_blocks, lambda p: self.apply(cfg, budget, width, p), part, out_dir,
+                                    device, fit, trace, "triplane_up_blocks")
+                chosen["triplane_up_blocks"] = int(blocks)
+        new_cfg = self.apply(cfg, chosen["max_splats"], chosen.get("width"), chosen.get("triplane_up_blocks"))
         return new_cfg, {"chosen": chosen, "trace": trace, "holdout_views": [v.image_id for v in val.train],
                          "min_gain_db": self.min_gain_db}

@@ -72,3 +72,25 @@ def test_models_without_fields_search_only_the_budget(monkeypatch):
     new_cfg, block = search.choose(cfg, scene, __import__("pathlib").Path("/tmp/cap_test"), "cpu", None)
     assert new_cfg.schedule.max_splats == 2000
     assert block["chosen"] == {"max_splats": 2000} and len(block["trace"]) == 2
+
+
+def test_triplane_resolution_is_searched_last_and_single_candidates_cost_no_trial(monkeypatch):
+    calls = []
+
+    def fake_score(cfg, part, out_dir, device, fit):
+        calls.append(out_dir.name)
+        blocks = cfg.model.network.backbone.n_up_blocks  # follows field_budget.triplane_up_blocks
+        return {"val_psnr": {2: 20.0, 3: 20.5}[blocks]}
+
+    cfg = OmegaConf.create({"schedule": {"max_splats": 50_000}, "init": {"n_points": 10_000}, "seed": 0,
+                            "field_budget": {"head_width": 128, "triplane_up_blocks": 3},
+                            "model": {"network": {"backbone": {"_target_": "x",
+                                                               "n_up_blocks": "${field_budget.triplane_up_blocks}"},
+                                                  "color_width": "${field_budget.head_width}"}}})
+    scene = _Scene(train=[_View(i) for i in range(8)], test=[], val=[])
+    search = CapacitySearch(budgets=[1000], widths=[64], plane_blocks=[2, 3])
+    monkeypatch.setattr(search, "_score", fake_score)
+    new_cfg, block = search.choose(cfg, scene, __import__("pathlib").Path("/tmp/cap_test"), "cpu", None)
+    assert calls == ["triplane_up_blocks_2", "triplane_up_blocks_3"]  # budget and width: one candidate each
+    assert block["chosen"] == {"max_splats": 1000, "width": 64, "triplane_up_blocks": 3}
+    assert new_cfg.model.network.backbone.n_up_blocks == 3 and new_cfg.model.network.color_width == 64
