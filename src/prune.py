@@ -1,0 +1,112 @@
+"""``python -m src.prune RUN_DIR [RUN_DIR ...] [--keep 0.5,0.25,0.1] [--max-loss-db 0.2] [--write]``
+
+Shrink a finished run's baked splat set to what the scene needs and state the PSNR it costs
+(issue "scene-sized models"; LightGaussian-style significance pruning, no fine-tuning).
+
+Conventions: the run's ``splats.ply`` is its baked model (activated splats, DC colours: what the
+evaluator scores as ``baked_psnr``); significance is the blending weight alpha·T summed over the run's
+TRAINING views times the normalised volume^0.1 (``src.strategy.significance``); PSNR is measured on
+8-bit renders composited on the scene background, as the evaluator does. The keep fraction is chosen on
+training-view PSNR (the smallest model whose training PSNR drops by at most ``--max-loss-db``), never
+on test views; the test-view PSNR of every fraction is reported next to it.
+
+Writes ``<run>/pruning.json`` (atomically) and, with ``--write``, ``<run>/splats_pruned.ply`` (the
+chosen set). Static scenes only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from src.core.splats import Splats
+from src.data.base import View
+from src.eval.metrics import mean_finite, psnr, quantise
+from src.io.ply import read_ply, write_ply
+from src.rasterizer.base import Rasterizer
+from src.strategy.significance import splat_set_significance
+from src.utils.instantiate import build
+from src.utils.record import write_json
+
+DEFAULT_KEEP = (0.5, 0.25, 0.1)
+VOLUME_POWER = 0.1  # LightGaussian v_pow, as conf/strategy/budget.yaml
+
+
+def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], background: torch.Tensor) -> float:
+    """Mean PSNR (dB) of 8-bit renders of ``splats`` against the views' images."""
+    with torch.no_grad():
+        return mean_finite([psnr(quantise(rasterizer.render(splats, v.camera, background).color), v.image)
+                            for v in views])
+
+
+def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool = False) -> dict:
+    """Significance-prune one run's ``splats.ply`` at each keep fraction; returns the ``pruning.json`` record."""
+    import src.run  # noqa: F401 - registers the resolvers the saved config uses
+
+    cfg_path, ply_path = run_dir / ".hydra" / "config.yaml", run_dir / "splats.ply"
+    for p in (cfg_path, ply_path):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: missing (is {run_dir} a finished run directory of src.run?)")
+    cfg = OmegaConf.load(cfg_path)
+    scene = build(cfg.dataset).load()
+    if scene.is_dynamic:
+        raise ValueError(f"{run_dir}: pruning a baked splat set is defined for static scenes only")
+    rasterizer = build(cfg.rasterizer)
+    splats = read_ply(ply_path).splats
+    bg = scene.background
+    base = {"keep": 1.0, "n_splats": splats.n, "psnr_train": views_psnr(splats, rasterizer, scene.train, bg),
+            "psnr": views_psnr(splats, rasterizer, scene.test, bg)}
+    score = splat_set_significance(splats, rasterizer, scene.train, VOLUME_POWER)  # [N], training views only
+    order = torch.argsort(score, descending=True, stable=True)
+    rows, chosen, kept = [base], base, splats
+    for keep in sorted(keeps, reverse=True):
+        sub = splats.index(order[: max(1, round(keep * splats.n))])
+        row = {"keep": keep, "n_splats": sub.n, "psnr_train": views_psnr(sub, rasterizer, scene.train, bg),
+               "psnr": views_psnr(sub, rasterizer, scene.test, bg)}
+        row["train_loss_db"] = base["psnr_train"] - row["psnr_train"]
+        row["test_loss_db"] = base["psnr"] - row["psnr"]
+        rows.append(row)
+        if row["train_loss_db"] <= max_loss_db and row["n_splats"] < chosen["n_splats"]:
+            chosen, kept = row, sub
+    record = {"run_dir": str(run_dir), "scene": scene.name, "max_loss_db": max_loss_db,
+              "selected_on": "training views", "rows": rows, "chosen": chosen}
+    write_json(run_dir / "pruning.json", record)
+    if write:
+        write_ply(run_dir / "splats_pruned.ply", kept)
+    return record
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m src.prune", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", type=Path, help="finished run directories (with splats.ply, .hydra/)")
+    ap.add_argument("--keep", default=",".join(map(str, DEFAULT_KEEP)), help="fractions of splats to keep")
+    ap.add_argument("--max-loss-db", type=float, default=0.2,
+                    help="largest training-view PSNR loss (dB) the chosen model may cost")
+    ap.add_argument("--write", action="store_true", help="also write the chosen set as splats_pruned.ply")
+    args = ap.parse_args(argv)
+    keeps = [float(k) for k in args.keep.split(",") if k]
+    if not keeps or not all(0.0 < k < 1.0 for k in keeps):
+        ap.error(f"--keep: fractions in (0, 1) expected, got {args.keep!r}")
+    print(f"{'run':<40} {'keep':>5} {'splats':>7} {'train dB':>9} {'test dB':>8} {'test loss':>9}")
+    failed = 0
+    for run in args.runs:
+        try:
+            rec = prune_run(run, keeps, args.max_loss_db, args.write)
+        except (FileNotFoundError, ValueError) as e:
+            print(f"{run!s:<40} error: {e}", file=sys.stderr)
+            failed += 1
+            continue
+        for r in rec["rows"]:
+            mark = " <- chosen" if r is rec["chosen"] else ""
+            print(f"{str(run)[-40:]:<40} {r['keep']:>5.2f} {r['n_splats']:>7} {r['psnr_train']:>9.2f} "
+                  f"{r['psnr']:>8.2f} {r.get('test_loss_db', 0.0):>9.2f}{mark}")
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
