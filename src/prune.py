@@ -33,7 +33,6 @@ from src.utils.instantiate import build
 from src.utils.record import write_json
 
 DEFAULT_KEEP = (0.5, 0.25, 0.1)
-VOLUME_POWER = 0.1  # LightGaussian v_pow, as conf/strategy/budget.yaml
 
 
 def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], background: torch.Tensor) -> float:
@@ -43,7 +42,8 @@ def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], backgr
                             for v in views])
 
 
-def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool = False) -> dict:
+def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool = False,
+              volume_power: float = 0.1) -> dict:
     """Significance-prune one run's ``splats.ply`` at each keep fraction; returns the ``pruning.json`` record."""
     import src.run  # noqa: F401 - registers the resolvers the saved config uses
 
@@ -60,7 +60,7 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     bg = scene.background
     base = {"keep": 1.0, "n_splats": splats.n, "psnr_train": views_psnr(splats, rasterizer, scene.train, bg),
             "psnr": views_psnr(splats, rasterizer, scene.test, bg)}
-    score = splat_set_significance(splats, rasterizer, scene.train, VOLUME_POWER)  # [N], training views only
+    score = splat_set_significance(splats, rasterizer, scene.train, volume_power)  # [N], training views only
     order = torch.argsort(score, descending=True, stable=True)
     rows, chosen, kept = [base], base, splats
     for keep in sorted(keeps, reverse=True):
@@ -88,6 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-loss-db", type=float, default=0.2,
                     help="largest training-view PSNR loss (dB) the chosen model may cost")
     ap.add_argument("--write", action="store_true", help="also write the chosen set as splats_pruned.ply")
+    ap.add_argument("--volume-power", type=float, default=0.1,
+                    help="exponent of the volume term of the significance (LightGaussian: 0.1)")
     args = ap.parse_args(argv)
     keeps = [float(k) for k in args.keep.split(",") if k]
     if not keeps or not all(0.0 < k < 1.0 for k in keeps):
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     failed = 0
     for run in args.runs:
         try:
-            rec = prune_run(run, keeps, args.max_loss_db, args.write)
+            rec = prune_run(run, keeps, args.max_loss_db, args.write, args.volume_power)
         except (FileNotFoundError, ValueError) as e:
             print(f"{run!s:<40} error: {e}", file=sys.stderr)
             failed += 1

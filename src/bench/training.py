@@ -50,6 +50,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     from omegaconf import OmegaConf
 
     import src.run  # noqa: F401 - registers ${repo:}
+    from src.capacity import has_field
     from src.core.cameras import Camera, look_at
     from src.data.base import View
     from src.strategy.base import NoDensification
@@ -93,8 +94,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
                 times[k].append(1000 * step["timing"][k])
     ms = {k: statistics.median(v) for k, v in times.items()}
     totals = [sum(times[k][i] for k in PARTS) for i in range(iters)]
-    has_field = OmegaConf.select(cfg, "model.network.backbone._target_") is not None
-    row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field else None,
+    row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field(cfg) else None,
            "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
            getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
            "iter_ms_min": min(totals)}
