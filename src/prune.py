@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         for r in rec["rows"]:
             mark = " <- chosen" if r is rec["chosen"] else ""
-            print(f"{str(run)[-40:]:<40} {r['keep']:>5.2f} {r['n_splats']:>7} {r['psnr_train']:>9.2f} "
+            print(f"{'/'.join(run.parts[-3:])[-40:]:<40} {r['keep']:>5.2f} {r['n_splats']:>7} {r['psnr_train']:>9.2f} "
                   f"{r['psnr']:>8.2f} {r.get('test_loss_db', 0.0):>9.2f}{mark}")
     return 1 if failed else 0
 
