@@ -107,7 +107,9 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
             generator = seed_everything(cfg.seed)  # the same stream whether stage 1 was trained or read
         capacity = build(cfg.capacity) if cfg.get("capacity") else None
         if capacity is not None and capacity.enabled:
+            t_search = time.perf_counter()
             cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
+            record["capacity"]["search_s"] = time.perf_counter() - t_search
             record["keys"].update(record["capacity"]["chosen"])
         model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
         evaluator = build(cfg.eval)
@@ -125,6 +127,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         }
         if stage1 is not None:  # the 3DGS first stage is part of this method's training cost
             record["metrics"]["stage1_train_s"] = stage1["train_s"]
+        if "capacity" in record:  # so is the capacity search
+            record["metrics"]["capacity_search_s"] = record["capacity"]["search_s"]
         record["per_view"] = per_view
         if per_frame is not None:
             record["per_frame"] = per_frame

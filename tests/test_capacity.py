@@ -94,3 +94,23 @@ def test_triplane_resolution_is_searched_last_and_single_candidates_cost_no_tria
     assert calls == ["triplane_up_blocks_2", "triplane_up_blocks_3"]  # budget and width: one candidate each
     assert block["chosen"] == {"max_splats": 1000, "width": 64, "triplane_up_blocks": 3}
     assert new_cfg.model.network.backbone.n_up_blocks == 3 and new_cfg.model.network.color_width == 64
+
+
+def test_capacity_auto_runs_end_to_end_and_records_its_choice(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parents[1]
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "src.run", "+experiment=gs3d_auto", f"hydra.run.dir={out}", "+ci=smoke"],
+                       cwd=repo, capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    rec = json.loads((out / "metrics.json").read_text())
+    chosen = rec["capacity"]["chosen"]
+    assert rec["status"] == "ok" and rec["keys"]["max_splats"] == chosen["max_splats"]
+    assert "width" not in chosen  # 3DGS has no fields to size
+    assert rec["metrics"]["n_splats"] <= chosen["max_splats"] and rec["metrics"]["capacity_search_s"] > 0
+    holdout = set(rec["capacity"]["holdout_views"])
+    assert holdout and holdout < set(rec["views"])  # held out of the TRAINING views (rec["views"])

@@ -433,3 +433,12 @@ def test_ranks_are_per_scene_when_scene_is_a_row_key(tmp_path: Path) -> None:
              for r in [[c.strip() for c in r]]}
     assert cells[("b", "A")].startswith("**21.00**") and cells[("a", "A")].startswith("_20.00_")
     assert cells[("a", "B")].startswith("**30.00**") and cells[("b", "B")].startswith("_29.00_")
+
+
+def test_chart_training_time_includes_first_stage_and_capacity_search():
+    from src.reporting.chart import _train_time
+    from src.reporting.collect import RunRecord
+
+    plain = RunRecord({"status": "ok", "metrics": {"train_s": 10.0}})
+    full = RunRecord({"status": "ok", "metrics": {"train_s": 10.0, "stage1_train_s": 5.0, "capacity_search_s": 2.5}})
+    assert _train_time(plain) == 10.0 and _train_time(full) == 17.5
