@@ -21,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from src.data.base import Scene
 from src.eval.evaluator import Evaluator
+from src.init.stage1 import ensure_first_stage
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +104,19 @@ class CapacitySearch:
                 out.field_budget.triplane_up_blocks = int(plane_blocks)
         return out
 
+    @staticmethod
+    def _own_first_stage(cfg: DictConfig, out_dir: Path) -> DictConfig:
+        """For a two-stage config (``stage1.auto``), a copy whose first stage lives in ``out_dir/stage1``
+        (trained on the search's training part only, so no held-out view leaks into the trials'
+        initialisation) with its iterations pinned before the trials shorten the run; else ``cfg``."""
+        if not (OmegaConf.select(cfg, "stage1.auto") and OmegaConf.select(cfg, "init.run_dir")):
+            return cfg
+        out = copy.deepcopy(cfg)
+        with open_dict(out):
+            out.stage1.iterations = int(cfg.stage1.iterations)
+            out.init.run_dir = str(out_dir / "stage1")
+        return out
+
     def _score(self, cfg: DictConfig, part: Scene, out_dir: Path, device, fit: Callable) -> dict:
         short = copy.deepcopy(cfg)
         with open_dict(short):
@@ -136,16 +150,19 @@ class CapacitySearch:
         """Run the search; returns (cfg with the chosen sizes, the record's ``capacity`` block)."""
         part, val = self.split(scene)
         trace: list[dict] = []
-        budget = self._grow(self.budgets, lambda b: self.apply(cfg, b), part, out_dir, device, fit, trace,
+        search_cfg = self._own_first_stage(cfg, out_dir)
+        if search_cfg is not cfg:  # two-stage protocol: the trials start from a first stage of `part`
+            ensure_first_stage(search_cfg, part, device, fit)
+        budget = self._grow(self.budgets, lambda b: self.apply(search_cfg, b), part, out_dir, device, fit, trace,
                             "max_splats")
         chosen: dict = {"max_splats": int(budget)}
         if has_field(cfg):
-            width = self._grow(self.widths, lambda w: self.apply(cfg, budget, w), part, out_dir, device, fit, trace,
-                               "width")
+            width = self._grow(self.widths, lambda w: self.apply(search_cfg, budget, w), part, out_dir, device, fit,
+                               trace, "width")
             chosen["width"] = int(width)
             if self.plane_blocks and has_triplane(cfg):
-                blocks = self._grow(self.plane_blocks, lambda p: self.apply(cfg, budget, width, p), part, out_dir,
-                                    device, fit, trace, "triplane_up_blocks")
+                blocks = self._grow(self.plane_blocks, lambda p: self.apply(search_cfg, budget, width, p), part,
+                                    out_dir, device, fit, trace, "triplane_up_blocks")
                 chosen["triplane_up_blocks"] = int(blocks)
         new_cfg = self.apply(cfg, chosen["max_splats"], chosen.get("width"), chosen.get("triplane_up_blocks"))
         return new_cfg, {"chosen": chosen, "trace": trace, "holdout_views": [v.image_id for v in val.train],

@@ -114,3 +114,25 @@ def test_capacity_auto_runs_end_to_end_and_records_its_choice(tmp_path):
     assert rec["metrics"]["n_splats"] <= chosen["max_splats"] and rec["metrics"]["capacity_search_s"] > 0
     holdout = set(rec["capacity"]["holdout_views"])
     assert holdout and holdout < set(rec["views"])  # held out of the TRAINING views (rec["views"])
+
+
+def test_two_stage_search_trains_its_own_first_stage_on_the_search_views(monkeypatch, tmp_path):
+    """The trials' 3DGS first stage must not see the held-out views (nor depend on the trial length)."""
+    import src.capacity as capacity
+
+    seen = {}
+
+    def fake_ensure(cfg, scene, device, fit):
+        seen["run_dir"], seen["iterations"] = cfg.init.run_dir, cfg.stage1.iterations
+        seen["views"] = [v.image_id for v in scene.train]
+
+    monkeypatch.setattr(capacity, "ensure_first_stage", fake_ensure)
+    search = CapacitySearch(budgets=[1000], widths=[64], search_iterations=10)
+    monkeypatch.setattr(search, "_score", lambda *a: {"val_psnr": 1.0})
+    cfg = OmegaConf.create({"schedule": {"max_splats": 50_000}, "init": {"n_points": 10_000, "run_dir": "/main/s1"},
+                            "seed": 0, "trainer": {"iterations": 1500},
+                            "stage1": {"auto": True, "iterations": "${trainer.iterations}"}})
+    scene = _Scene(train=[_View(i) for i in range(8)], test=[], val=[])
+    new_cfg, _ = search.choose(cfg, scene, tmp_path, "cpu", None)
+    assert seen == {"run_dir": str(tmp_path / "stage1"), "iterations": 1500, "views": [0, 1, 2, 4, 5, 6]}
+    assert new_cfg.init.run_dir == "/main/s1"  # the main run keeps the first stage of all training views
