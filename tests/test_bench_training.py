@@ -20,4 +20,5 @@ def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
         assert r["iter_ms"] > 0 and r["fps_baked"] > 0 and r["peak_mem_mb"] > 0
         assert r["ratio_vs_gs3d"] > 0
     assert rows[2]["n_params"] < rows[1]["n_params"]  # narrower heads, fewer parameters
+    assert rows[0]["backbone_ms"] is None and rows[1]["backbone_ms"] > 0  # the tri-plane CNN alone
     assert "x 3DGS" in capsys.readouterr().out

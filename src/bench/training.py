@@ -4,7 +4,8 @@ For each method (an experiment preset) and splat count, one subprocess (so peak 
 method's own) builds the model from the same configs a run uses, renders one 100 px view per step
 with the rasterizer ``auto`` picks, and times :meth:`src.trainer.Trainer.train_step` split into
 field (splat prediction), rasterizer (forward), backward and optimizer. Densification is off so the
-splat count stays equal across methods. It also bakes the model and times rendering at 200 px.
+splat count stays equal across methods. It also bakes the model and times rendering at 200 px, and
+times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_ms``).
 ``--head-widths`` repeats the methods with neural fields at other ``field_budget.head_width`` values
 (the size a capacity search may choose), so the SplatFields ÷ 3DGS ratio can be read per width.
 Timings are medians over the timed iterations; compare them as ratios within one run.
@@ -98,6 +99,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
            "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
            getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
            "iter_ms_min": min(totals)}
+    row["backbone_ms"] = _backbone_ms(model, iters) if has_field(cfg) else None
     model.eval()
     with torch.no_grad():
         baked = model.bake()
@@ -110,6 +112,24 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
         row["fps_baked"] = reps / (time.perf_counter() - t0)
     row["peak_mem_mb"] = _rss_peak_mb()
     return row
+
+
+def _backbone_ms(model, iters: int) -> float | None:
+    """Median ms of the field backbone alone (e.g. the tri-plane CNN), forward + backward of its output
+    sum: the part of a SplatFields step that does not scale with the splat count or the head width."""
+    import torch
+
+    times = []
+    for _ in range(iters + 1):
+        t0 = time.perf_counter()
+        state = model.network.backbone.prepare()
+        tensors = [t for t in (state if isinstance(state, (list, tuple)) else [state]) if torch.is_tensor(t)]
+        if not tensors or not tensors[0].requires_grad:
+            return None  # a backbone without trainable state (NoBackbone)
+        sum(t.sum() for t in tensors).backward()
+        times.append(1000 * (time.perf_counter() - t0))
+        model.zero_grad(set_to_none=True)
+    return statistics.median(times[1:])
 
 
 def _run_isolated(method: str, n: int, args: argparse.Namespace, head_width: int | None = None) -> dict:
@@ -127,7 +147,7 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, head_width: int
 
 def print_table(rows: list[dict]) -> None:
     hdr = f"{'method':<15} {'width':>5} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
-    hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'peak MB':>8} {'FPS@200':>8}"
+    hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'CNN ms':>7} {'peak MB':>8} {'FPS@200':>8}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
@@ -137,7 +157,8 @@ def print_table(rows: list[dict]) -> None:
         parts = " ".join(f"{r['ms'][k]:>10.1f}" for k in PARTS)
         ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
         name = f"{r['method']:<15} {r.get('head_width') or '-':>5}"
-        print(f"{name} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} "
+        cnn = f"{r['backbone_ms']:.1f}" if r.get("backbone_ms") is not None else "-"
+        print(f"{name} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} {cnn:>7} "
               f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f}")
 
 
