@@ -6,7 +6,8 @@ Shrink a finished run's baked splat set to what the scene needs and state the PS
 Conventions: the run's ``splats.ply`` is its baked model (activated splats, DC colours: what the
 evaluator scores as ``baked_psnr``); significance is the blending weight alpha·T summed over the run's
 TRAINING views times the normalised volume^0.1 (``src.strategy.significance``); PSNR is measured on
-8-bit renders composited on the scene background, as the evaluator does. The keep fraction is chosen on
+renders composited on the scene background, 8-bit rounded when the run's ``eval.quantise`` is
+on, as the evaluator does. The keep fraction is chosen on
 training-view PSNR (the smallest model whose training PSNR drops by at most ``--max-loss-db``), never
 on test views; the test-view PSNR of every fraction is reported next to it.
 
@@ -35,11 +36,15 @@ from src.utils.record import write_json
 DEFAULT_KEEP = (0.5, 0.25, 0.1)
 
 
-def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], background: torch.Tensor) -> float:
-    """Mean PSNR (dB) of 8-bit renders of ``splats`` against the views' images."""
+def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], background: torch.Tensor,
+               quantised: bool = True) -> float:
+    """Mean PSNR (dB) of renders of ``splats`` (8-bit rounded if ``quantised``) against the views' images."""
     with torch.no_grad():
-        return mean_finite([psnr(quantise(rasterizer.render(splats, v.camera, background).color), v.image)
-                            for v in views])
+        scores = []
+        for v in views:
+            img = rasterizer.render(splats, v.camera, background).color  # [H, W, 3]
+            scores.append(psnr(quantise(img) if quantised else img, v.image))
+        return mean_finite(scores)
 
 
 def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool = False,
@@ -58,15 +63,20 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     rasterizer = build(cfg.rasterizer)
     splats = read_ply(ply_path).splats
     bg = scene.background
-    base = {"keep": 1.0, "n_splats": splats.n, "psnr_train": views_psnr(splats, rasterizer, scene.train, bg),
-            "psnr": views_psnr(splats, rasterizer, scene.test, bg)}
-    score = splat_set_significance(splats, rasterizer, scene.train, volume_power)  # [N], training views only
-    order = torch.argsort(score, descending=True, stable=True)
+    q = bool(OmegaConf.select(cfg, "eval.quantise", default=True))  # the run's evaluation protocol
+
+    def psnr_of(s: Splats, views: list[View]) -> float:
+        return views_psnr(s, rasterizer, views, bg, q)
+
+    base = {"keep": 1.0, "n_splats": splats.n, "psnr_train": psnr_of(splats, scene.train),
+            "psnr": psnr_of(splats, scene.test)}
+    significance = splat_set_significance(splats, rasterizer, scene.train, volume_power)  # [N], training views only
+    order = torch.argsort(significance, descending=True, stable=True)
     rows, chosen, kept = [base], base, splats
     for keep in sorted(keeps, reverse=True):
         sub = splats.index(order[: max(1, round(keep * splats.n))])
-        row = {"keep": keep, "n_splats": sub.n, "psnr_train": views_psnr(sub, rasterizer, scene.train, bg),
-               "psnr": views_psnr(sub, rasterizer, scene.test, bg)}
+        row = {"keep": keep, "n_splats": sub.n, "psnr_train": psnr_of(sub, scene.train),
+               "psnr": psnr_of(sub, scene.test)}
         row["train_loss_db"] = base["psnr_train"] - row["psnr_train"]
         row["test_loss_db"] = base["psnr"] - row["psnr"]
         rows.append(row)
