@@ -317,3 +317,22 @@ def test_bench_smoke():
     assert row["contrib_pairs"] > 0 and row["floor_ms"] > 0
     assert row["grad_rel_err"] < 1e-5
     assert math.isfinite(row["speedup_vs_ref"])
+
+
+def test_bench_cube_scene_matches_the_study():
+    """The ``cube`` scene has the study's 3-20 px splat radii at every width; rows name their scene
+    and an unknown scene is refused with the list of known ones."""
+    from src.bench.rasterizer import SCENES, run
+    from src.rasterizer.projection import project_splats
+
+    for width in (100, 400):
+        splats, cam = SCENES["cube"](2000, width, 0)
+        proj = project_splats(splats.means, splats.quats, splats.scales, cam)
+        r = proj.radii[proj.visible].float()
+        assert proj.visible.float().mean() > 0.95
+        assert 2.0 <= float(r.min()) and float(r.max()) <= 30.0  # 3 sigma of +-35 % anisotropic 3-20 px
+        assert 5.0 < float(r.median()) < 12.0
+    res = run([(32, 200)], reps=1, log=lambda _: None, scenes=("object", "cube"))
+    assert [row["scene"] for row in res["rows"]] == ["object", "cube"]
+    with pytest.raises(ValueError, match="unknown scene"):
+        run([(32, 200)], reps=1, log=lambda _: None, scenes=("sphere",))

@@ -22,7 +22,12 @@ with gsplat installed, ``gsplat``, with interleaved repetitions in one process. 
 torch_ref is skipped where its estimated time (upper-bound pairs x ns/pair, calibrated on its first
 run) exceeds ``--ref-max-s`` or its autograd memory (~100 B per pair) exceeds ``--ref-max-gb``.
 
-Synthetic scene ("a trained object"): a bumpy sphere of diameter ~1 centred at the origin. 90 % of
+Two seeded synthetic scenes (``--scenes``, default both): ``cube``, the scene of the CPU rasterizer
+study whose prototype times the issue's floor target was set against (:func:`synthetic_cube`: 3-20 px
+splats at every width, many blended pairs per splat), and ``object`` (below: small splats on a
+shell, few blended pairs per splat, so per-splat stages weigh more against the floor).
+
+Scene ``object`` ("a trained object"): a bumpy sphere of diameter ~1 centred at the origin. 90 % of
 the splats lie on its surface (normal jitter 0.01) as flat discs tangent to it: tangent scales
 log-uniform in [0.005, 0.03], normal scale 0.2x; 10 % fill the interior with random orientations.
 Opacities sigmoid(N(2.5, 1.5)) (mostly high: median 0.92), colours U(0, 1). The camera is at
@@ -131,6 +136,40 @@ def object_camera(width: int, seed: int = 0, distance: float = 4.0, fov_x: float
     w2c = look_at(eye, torch.zeros(3, dtype=torch.float64)).float()
     f = width / (2 * math.tan(fov_x / 2))
     return Camera(w2c, fx=f, fy=f, cx=width / 2, cy=width / 2, width=width, height=width)
+
+
+def synthetic_cube(n: int, width: int, seed: int = 0) -> Splats:
+    """The CPU rasterizer study's scene (``../shared/reference/cpu_rasterizer_study.md``).
+
+    N splats uniform in a unit cube centred at z = 2.5 in front of :func:`cube_camera`, whose 3-sigma
+    pixel radius is log-uniform in [3, 20] px at every resolution (world standard deviation
+    r / 3 x z / f with f = 1.1 W), anisotropy +-35 % per axis, random rotations, opacities U(0.05, 0.9),
+    colours U(0, 1). Denser in blended pairs than :func:`synthetic_object`.
+    """
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g) - 0.5
+    means[:, 2] += 2.5
+    f = 1.1 * width
+    r_px = torch.exp(torch.rand(n, generator=g) * (math.log(20.0) - math.log(3.0)) + math.log(3.0))
+    sigma = (r_px / 3.0) * means[:, 2] / f  # [N] world standard deviation
+    scales = sigma[:, None] * (1.0 + 0.35 * (2.0 * torch.rand(n, 3, generator=g) - 1.0))
+    quats = torch.randn(n, 4, generator=g)
+    quats = quats / quats.norm(dim=-1, keepdim=True)
+    opac = 0.05 + 0.85 * torch.rand(n, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    return Splats(means, scales, quats, opac, colors)
+
+
+def cube_camera(width: int) -> Camera:
+    """Square pinhole camera of the study: at the origin looking down +z (OpenCV), f = 1.1 W."""
+    f = 1.1 * width
+    return Camera(torch.eye(4), fx=f, fy=f, cx=width / 2, cy=width / 2, width=width, height=width)
+
+
+SCENES: dict[str, Callable[[int, int, int], tuple[Splats, Camera]]] = {
+    "object": lambda n, w, seed: (synthetic_object(n, seed=seed), object_camera(w, seed=seed)),
+    "cube": lambda n, w, seed: (synthetic_cube(n, w, seed=seed), cube_camera(w)),
+}
 
 
 def measure_peak_gflops(n: int = 2048, reps: int = 5) -> float:
@@ -243,8 +282,12 @@ def _rasterizers() -> dict[str, Rasterizer]:
 
 
 def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, ref_max_gb: float = 6.0,
-        seed: int = 0, log: Callable[[str], None] = print) -> dict:
-    """Run the benchmark; returns the JSON-ready result dict."""
+        seed: int = 0, log: Callable[[str], None] = print, scenes: tuple[str, ...] = ("object",)) -> dict:
+    """Run the benchmark over ``scenes`` (keys of :data:`SCENES`) x ``sizes``; returns the
+    JSON-ready result dict (one row per scene and size, ``row["scene"]`` names the scene)."""
+    for name in scenes:
+        if name not in SCENES:
+            raise ValueError(f"unknown scene {name!r}; choose from {sorted(SCENES)}")
     from src.rasterizer.cpu import CpuRasterizer, ensure_built
 
     ensure_built()
@@ -255,9 +298,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
         f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')})")
     ref_ns_per_pair = 40.0  # prior, replaced by the first measured run
     rows = []
-    for width, n in sizes:
-        splats = synthetic_object(n, seed=seed)
-        cam = object_camera(width, seed=seed)
+    for scene, (width, n) in ((sc, size) for sc in scenes for size in sizes):
+        splats, cam = SCENES[scene](n, width, seed)
         loss = _Loss(cam, 3, seed=seed)
         bg = torch.zeros(3)
         counter = CpuRasterizer(count_pairs=True)
@@ -302,6 +344,7 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             err = max(float((g_cpu[a] - grads_ref[a]).norm() / grads_ref[a].norm().clamp_min(1e-30))
                       for a in ATTRS)
         row = {
+            "scene": scene,
             "width": width,
             "n_splats": n,
             "ms": ms,
@@ -332,7 +375,7 @@ def _fmt(x: float | None, spec: str) -> str:
 
 def _format_row(r: dict) -> str:
     ms, mn = r["ms"], r["ms_min"]
-    parts = [f"W={r['width']:<4d} N={r['n_splats']:<7d}"]
+    parts = [f"{r.get('scene', 'object'):<6s} W={r['width']:<4d} N={r['n_splats']:<7d}"]
     for k in ms:
         parts.append(f"{k} {ms[k]:8.1f} ms (min {mn[k]:7.1f}, {r['x_floor'][k]:6.0f}x floor)")
     parts.append(f"speedup {_fmt(r['speedup_vs_ref'], '.0f')}x")
@@ -355,11 +398,11 @@ def format_table(result: dict) -> str:
         for k in r.get("proj_ms", {}):
             if k not in projs:
                 projs.append(k)
-    head = ["W", "N", *[f"{k} ms med (min)" for k in names], *[f"proj {k} ms med (min)" for k in projs],
+    head = ["scene", "W", "N", *[f"{k} ms med (min)" for k in names], *[f"proj {k} ms med (min)" for k in projs],
             "contrib pairs", "floor ms", *[f"{k} x floor" for k in names], "cpu vs ref", "grad rel err"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in result["rows"]:
-        cells = [str(r["width"]), f"{r['n_splats'] // 1000}k"]
+        cells = [r.get("scene", "object"), str(r["width"]), f"{r['n_splats'] // 1000}k"]
         for k in names:
             cells.append(f"{r['ms'][k]:.1f} ({r['ms_min'][k]:.1f})" if k in r["ms"] else "skip")
         for k in projs:
@@ -382,6 +425,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=None, help="timed repetitions (default 5, quick 3)")
     p.add_argument("--ref-max-s", type=float, default=20.0, help="skip torch_ref above this estimate")
     p.add_argument("--ref-max-gb", type=float, default=6.0, help="skip torch_ref above this memory estimate")
+    p.add_argument("--scenes", default="object,cube",
+                   help="comma-separated synthetic scenes: object (a trained-object-like shell of "
+                        "small splats), cube (the CPU rasterizer study's scene, 3-20 px splats)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None,
                    help="torch/OpenMP threads for everything (default: torch's default)")
@@ -390,7 +436,12 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     sizes = QUICK_SIZES if args.quick else FULL_SIZES
     reps = args.reps if args.reps is not None else (3 if args.quick else 5)
-    result = run(sizes, reps=reps, ref_max_s=args.ref_max_s, ref_max_gb=args.ref_max_gb, seed=args.seed)
+    scenes = tuple(x.strip() for x in args.scenes.split(",") if x.strip())
+    bad = [x for x in scenes if x not in SCENES]
+    if bad or not scenes:
+        p.error(f"--scenes: unknown {bad}; choose from {sorted(SCENES)}")
+    result = run(sizes, reps=reps, ref_max_s=args.ref_max_s, ref_max_gb=args.ref_max_gb, seed=args.seed,
+                 scenes=scenes)
     print()
     print(format_table(result))
     if args.out:
