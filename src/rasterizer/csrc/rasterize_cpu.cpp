@@ -267,9 +267,6 @@ struct Binning {
   TVec<int64_t> tile_off;    // [ntiles + 1]
   TVec<int32_t> tile_list;   // [P] sorted splat index per slot
   TVec<uint32_t> tile_mask;  // [P] half-row cull mask per slot
-  TVec<int64_t> pair_off;    // [M + 1] splat-major pair offsets
-  TVec<int32_t> pair_slot;   // [P] slot of each splat-major pair
-  TVec<int32_t> pair_tile;   // [P] tile of each splat-major pair
 };
 
 struct Rect {
@@ -277,7 +274,7 @@ struct Rect {
 };
 
 struct TileMask {
-  int32_t tile;
+  int32_t splat, tile;
   uint32_t mask;
 };
 
@@ -314,8 +311,6 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   const int T = b.ntiles;
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 16384 + 1)));
   std::vector<int64_t> hist(static_cast<size_t>(nth) * T, 0);
-  b.pair_off.resize(M + 1);  // per-splat pair counts at [i + 1], then their prefix sums
-  b.pair_off[0] = 0;
   // per thread: the (tile, mask) pairs with a non-empty mask of its splat chunk, in order
   std::vector<std::vector<TileMask>> found(nth);
   // pass 1: masks, per-splat counts and per-(thread, tile) counts over contiguous splat chunks
@@ -328,24 +323,21 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
     std::vector<int64_t> h(T, 0);
     std::vector<TileMask> fd;
     fd.reserve(static_cast<size_t>((hi - lo) * 4));
-    int64_t* poff = b.pair_off.p;
     const int gxl = b.gx;
     for (int64_t i = lo; i < hi; ++i) {
       const Geo& g = geo[i];
       const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
-      const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
         const RowSpans sp = ellipse_spans(g, static_cast<float>(ty * TILE));
         for (int tx = rc.x0; tx < rc.x1; ++tx) {
           const uint32_t m = span_mask(sp, static_cast<float>(tx * TILE));
           if (m) {
             const int tile = ty * gxl + tx;
-            fd.push_back({tile, m});
+            fd.push_back({static_cast<int32_t>(i), tile, m});
             h[tile]++;
           }
         }
       }
-      poff[i + 1] = static_cast<int64_t>(fd.size() - before);
     }
     std::copy(h.begin(), h.end(), hist.begin() + static_cast<size_t>(t) * T);
     found[t] = std::move(fd);
@@ -364,34 +356,20 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   b.tile_off[T] = run;
   const int64_t P = run;
   TORCH_CHECK(P < (int64_t(1) << 31), "rasterize_cpu: too many (splat, tile) pairs: ", P);
-  for (int64_t i = 0; i < M; ++i) b.pair_off[i + 1] += b.pair_off[i];
   b.tile_list.resize(P);
   b.tile_mask.resize(P);
-  b.pair_slot.resize(P);
-  b.pair_tile.resize(P);
-  // pass 2: scatter each thread's pairs into the tile lists (splat-major pair k runs along)
+  // pass 2: scatter each thread's pairs into the tile lists
 #pragma omp parallel num_threads(nth)
   {
     const int t = omp_get_thread_num();
-    const int64_t lo = M * t / nth, hi = M * (t + 1) / nth;
     std::vector<int64_t> cur(cursor.begin() + static_cast<ptrdiff_t>(t) * T,
                              cursor.begin() + static_cast<ptrdiff_t>(t + 1) * T);
-    const TileMask* fd = found[t].data();
-    const int64_t* poff = b.pair_off.p;
     int32_t* __restrict tl = b.tile_list.p;
     uint32_t* __restrict tm = b.tile_mask.p;
-    int32_t* __restrict ps = b.pair_slot.p;
-    int32_t* __restrict pt = b.pair_tile.p;
-    int64_t k = poff[lo];
-    for (int64_t i = lo; i < hi; ++i) {
-      const int64_t kend = poff[i + 1];
-      for (; k < kend; ++k, ++fd) {
-        const int64_t slot = cur[fd->tile]++;
-        tl[slot] = static_cast<int32_t>(i);
-        tm[slot] = fd->mask;
-        ps[k] = static_cast<int32_t>(slot);
-        pt[k] = fd->tile;
-      }
+    for (const TileMask& fd : found[t]) {
+      const int64_t slot = cur[fd.tile]++;
+      tl[slot] = fd.splat;
+      tm[slot] = fd.mask;
     }
   }
   return b;
@@ -664,8 +642,7 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
 //          last contributor, -1 if none), then the state for the backward: order [M] int32,
 //          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
-//          tile_mask [P] int32, pair_off [M+1] int64, pair_slot [P] int32, pair_tile [P] int32,
-//          and stats [16] float64: contrib pairs, evaluated fwd vectors, evaluated bwd vectors,
+//          tile_mask [P] int32, and stats [16] float64: contrib pairs, evaluated fwd vectors, evaluated bwd vectors,
 //          tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
 //          reduction, then the process CPU times of the same six stages.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
@@ -857,9 +834,6 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           bins.tile_off.t,
           bins.tile_list.t,
           bins.tile_mask.t,
-          bins.pair_off.t,
-          bins.pair_slot.t,
-          bins.pair_tile.t,
           stats_t};
 }
 
@@ -872,8 +846,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
                                     at::Tensor background, at::Tensor T_final,
                                     at::Tensor last, at::Tensor order, at::Tensor geo_t,
                                     at::Tensor feat_t, at::Tensor tile_off, at::Tensor tile_list,
-                                    at::Tensor tile_mask, at::Tensor pair_off,
-                                    at::Tensor pair_slot, at::Tensor pair_tile, at::Tensor stats,
+                                    at::Tensor tile_mask, at::Tensor stats,
                                     int64_t n_splats, bool count) {
   check_f32(grad_color, "grad_color", 3);
   check_f32(grad_alpha, "grad_alpha", 2);
@@ -948,40 +921,39 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     }
   }
   const Stamp t1 = now();
-  // Per-splat reduction over its tiles in a fixed (tile) order, in depth order, each splat's row
-  // written straight into its original position (a random write per splat, the record reads are
-  // random and prefetched). One output row per splat:
+  // Per-splat reduction over its tiles in a fixed (tile) order: each thread owns a range of splats
+  // (depth order) and walks the processed slots of all tiles in tile order (sequential reads),
+  // accumulating the records of its own splats; every splat's sum is thus taken in the same order
+  // for any thread count (deterministic, no atomics). Then each splat's row is written into its
+  // original position. One output row per splat:
   // [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)]; rows of splats that are not
   // visible are zero.
   auto g_all = M < N ? at::zeros({N, R}, at::kFloat) : at::empty({N, R}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* ord = order.data_ptr<int32_t>();
-    const int64_t* poff = pair_off.data_ptr<int64_t>();
-    const int32_t* pslot = pair_slot.data_ptr<int32_t>();
-    const int32_t* ptile = pair_tile.data_ptr<int32_t>();
     float* og = g_all.data_ptr<float>();
     const float* recp = rec.get();
-    std::vector<int64_t> pend(T);  // slot is processed iff slot < pend[tile]
-    for (int t = 0; t < T; ++t) pend[t] = toff[t] + nproc[t];
-    at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
-      const int64_t kend = poff[hi];
-      std::vector<float> sumv(R);
-      float* sum = sumv.data();
-      for (int64_t i = lo; i < hi; ++i) {
-        if (i + 16 < hi) {
-          const float* d = og + static_cast<int64_t>(ord[i + 16]) * R;
-          __builtin_prefetch(d, 1);
-          __builtin_prefetch(d + R - 1, 1);
-        }
-        for (int q = 0; q < R; ++q) sum[q] = 0.0f;
-        for (int64_t k = poff[i]; k < poff[i + 1]; ++k) {
-          if (k + 16 < kend) __builtin_prefetch(recp + static_cast<int64_t>(pslot[k + 16]) * R);
-          const int64_t slot = pslot[k];
-          if (slot >= pend[ptile[k]]) continue;  // after its tile's last contributor
+    std::unique_ptr<float[]> sums(new float[static_cast<size_t>(std::max<int64_t>(M, 1)) * R]);
+    const int nth_red = P < MIN_PAIRS_PARALLEL ? 1 : nth;
+#pragma omp parallel num_threads(nth_red)
+    {
+      const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+      const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
+      float* sm = sums.get();
+      std::fill(sm + lo * R, sm + hi * R, 0.0f);
+      for (int tile = 0; tile < T; ++tile) {
+        const int64_t s0 = toff[tile], s1 = toff[tile] + nproc[tile];  // processed slots
+        for (int64_t slot = s0; slot < s1; ++slot) {
+          const int64_t i = tl[slot];
+          if (i < lo || i >= hi) continue;
           const float* r = recp + slot * R;
-          for (int q = 0; q < R; ++q) sum[q] += r[q];
+          float* d = sm + i * R;
+          for (int q = 0; q < R; ++q) d[q] += r[q];
         }
+      }
+      for (int64_t i = lo; i < hi; ++i) {
+        const float* sum = sm + i * R;
         const Geo& g = gp[i];
         float* o = og + static_cast<int64_t>(ord[i]) * R;
         o[0] = g.a * sum[0] + g.b * sum[1];
@@ -991,7 +963,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
         o[4] = -0.5f * sum[4];
         for (int q = 5; q < R; ++q) o[q] = sum[q];
       }
-    });
+    }
   }
   const Stamp t2 = now();
   double* st = stats.data_ptr<double>();
