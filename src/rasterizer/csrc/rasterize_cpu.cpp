@@ -642,8 +642,8 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
 //          last contributor, -1 if none), then the state for the backward: order [M] int32,
 //          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
-//          tile_mask [P] int32, and stats [16] float64: contrib pairs, evaluated fwd vectors, evaluated bwd vectors,
-//          tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
+//          tile_mask [P] int32, and stats [16] float64: contrib pairs, evaluated fwd vectors,
+//          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
 //          reduction, then the process CPU times of the same six stages.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
