@@ -56,7 +56,14 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     for p in (cfg_path, ply_path):
         if not p.is_file():
             raise FileNotFoundError(f"{p}: missing (is {run_dir} a finished run directory of src.run?)")
-    cfg = OmegaConf.load(cfg_path)
+    try:
+        cfg = OmegaConf.load(cfg_path)
+        missing = [k for k in ("dataset", "rasterizer") if OmegaConf.select(cfg, k) is None]
+    except Exception as e:  # yaml or OmegaConf errors: name the file, one line
+        raise ValueError(f"{cfg_path}: unreadable run config ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from e
+    if missing:
+        raise ValueError(f"{cfg_path}: run config lacks {', '.join(missing)} (not written by src.run?)")
     scene = build(cfg.dataset).load()
     if scene.is_dynamic:
         raise ValueError(f"{run_dir}: pruning a baked splat set is defined for static scenes only")
