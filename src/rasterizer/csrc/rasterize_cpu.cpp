@@ -313,10 +313,10 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   std::vector<int64_t> hist(static_cast<size_t>(nth) * T, 0);
   // per thread: the (tile, mask) pairs with a non-empty mask of its splat chunk, in order
   std::vector<std::vector<TileMask>> found(nth);
-  // pass 1: masks, per-splat counts and per-(thread, tile) counts over contiguous splat chunks
-#pragma omp parallel num_threads(nth)
-  {
-    const int t = omp_get_thread_num();
+  // pass 1: masks and per-(chunk, tile) counts over nth contiguous splat chunks (a loop over the
+  // chunks, so every chunk runs whatever team size OpenMP grants)
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+  for (int t = 0; t < nth; ++t) {
     const int64_t lo = M * t / nth, hi = M * (t + 1) / nth;
     // thread-local histogram and pair list (per-thread rows of shared arrays would share cache
     // lines between threads: measured 2-4x slower)
@@ -358,10 +358,9 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   TORCH_CHECK(P < (int64_t(1) << 31), "rasterize_cpu: too many (splat, tile) pairs: ", P);
   b.tile_list.resize(P);
   b.tile_mask.resize(P);
-  // pass 2: scatter each thread's pairs into the tile lists
-#pragma omp parallel num_threads(nth)
-  {
-    const int t = omp_get_thread_num();
+  // pass 2: scatter each chunk's pairs into the tile lists
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+  for (int t = 0; t < nth; ++t) {
     std::vector<int64_t> cur(cursor.begin() + static_cast<ptrdiff_t>(t) * T,
                              cursor.begin() + static_cast<ptrdiff_t>(t + 1) * T);
     int32_t* __restrict tl = b.tile_list.p;
@@ -643,8 +642,8 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //          last contributor, -1 if none), then the state for the backward: order [M] int32,
 //          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
 //          tile_mask [P] int32, and stats [16] float64: contrib pairs, evaluated fwd vectors,
-//          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd, raster bwd, bwd
-//          reduction, then the process CPU times of the same six stages.
+//          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd,
+//          raster bwd, bwd reduction, then the process CPU times of the same six stages.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                    at::Tensor visible, at::Tensor background, int64_t width,
