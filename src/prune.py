@@ -26,25 +26,13 @@ from omegaconf import OmegaConf
 
 from src.core.splats import Splats
 from src.data.base import View
-from src.eval.metrics import mean_finite, psnr, quantise
+from src.eval.evaluator import views_psnr
 from src.io.ply import read_ply, write_ply
-from src.rasterizer.base import Rasterizer
 from src.strategy.significance import splat_set_significance
 from src.utils.instantiate import build
 from src.utils.record import write_json
 
 DEFAULT_KEEP = (0.5, 0.25, 0.1)
-
-
-def views_psnr(splats: Splats, rasterizer: Rasterizer, views: list[View], background: torch.Tensor,
-               quantised: bool = True) -> float:
-    """Mean PSNR (dB) of renders of ``splats`` (8-bit rounded if ``quantised``) against the views' images."""
-    with torch.no_grad():
-        scores = []
-        for v in views:
-            img = rasterizer.render(splats, v.camera, background).color  # [H, W, 3]
-            scores.append(psnr(quantise(img) if quantised else img, v.image))
-        return mean_finite(scores)
 
 
 def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool = False,
@@ -73,7 +61,7 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     q = bool(OmegaConf.select(cfg, "eval.quantise", default=True))  # the run's evaluation protocol
 
     def psnr_of(s: Splats, views: list[View]) -> float:
-        return views_psnr(s, rasterizer, views, bg, q)
+        return views_psnr(lambda _cam: s, rasterizer, views, bg, q)
 
     base = {"keep": 1.0, "n_splats": splats.n, "psnr_train": psnr_of(splats, scene.train),
             "psnr": psnr_of(splats, scene.test)}

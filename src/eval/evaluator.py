@@ -3,15 +3,30 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
+from src.core.cameras import Camera
+from src.core.splats import Splats
 from src.data.base import Scene, View
 from src.data.images import write_png
 from src.eval.metrics import mean_finite, psnr, quantise, ssim_eval
 from src.models.base import SplatModel
 from src.rasterizer.base import Rasterizer
+
+
+@torch.no_grad()
+def views_psnr(splats_for: Callable[[Camera], Splats], rasterizer: Rasterizer, views: list[View],
+               background: torch.Tensor, quantised: bool = True) -> float:
+    """Mean PSNR (dB) over ``views`` of the splats ``splats_for(view.camera)`` rendered on ``background``
+    (8-bit rounded if ``quantised``, the reference protocol) against the views' images."""
+    scores = []
+    for v in views:
+        img = rasterizer.render(splats_for(v.camera), v.camera, background).color  # [H, W, 3]
+        scores.append(psnr(quantise(img) if quantised else img, v.image))
+    return mean_finite(scores)
 
 
 class Evaluator:
@@ -142,11 +157,7 @@ class Evaluator:
             first = baked_for(scene.test[0].camera)
         except NotImplementedError:
             return None
-        scores = []
-        for v in scene.test:
-            img = rasterizer.render(baked_for(v.camera), v.camera, bg).color
-            scores.append(psnr(quantise(img) if self.quantise else img, v.image))
-        out["baked_psnr"] = mean_finite(scores)
+        out["baked_psnr"] = views_psnr(baked_for, rasterizer, scene.test, bg, self.quantise)
         if self.fps_repeats > 0:
             cam = scene.test[0].camera
             rasterizer.render(first, cam, bg)  # warm-up
