@@ -310,7 +310,8 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   b.ntiles = b.gx * b.gy;
   const int T = b.ntiles;
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 16384 + 1)));
-  std::vector<int64_t> hist(static_cast<size_t>(nth) * T, 0);
+  // per (chunk, tile): the chunk's pair count, then (below) its first slot in that tile's list
+  std::vector<int64_t> cursor(static_cast<size_t>(nth) * T, 0);
   // per thread: the (tile, mask) pairs with a non-empty mask of its splat chunk, in order
   std::vector<std::vector<TileMask>> found(nth);
   // pass 1: masks and per-(chunk, tile) counts over nth contiguous splat chunks (a loop over the
@@ -339,18 +340,18 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
         }
       }
     }
-    std::copy(h.begin(), h.end(), hist.begin() + static_cast<size_t>(t) * T);
+    std::copy(h.begin(), h.end(), cursor.begin() + static_cast<ptrdiff_t>(t) * T);
     found[t] = std::move(fd);
   }
   // offsets: tiles in order, threads (= depth chunks) in order inside a tile -> stable
   b.tile_off.assign(T + 1, 0);
-  std::vector<int64_t> cursor(static_cast<size_t>(nth) * T);
   int64_t run = 0;
   for (int tile = 0; tile < T; ++tile) {
     b.tile_off[tile] = run;
     for (int t = 0; t < nth; ++t) {
+      const int64_t count = cursor[static_cast<size_t>(t) * T + tile];
       cursor[static_cast<size_t>(t) * T + tile] = run;
-      run += hist[static_cast<size_t>(t) * T + tile];
+      run += count;
     }
   }
   b.tile_off[T] = run;
