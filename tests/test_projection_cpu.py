@@ -315,8 +315,9 @@ def test_backward_reads_strided_gradient_rows_in_place(dtype: torch.dtype):
     wide = torch.randn(1003, 11, generator=g, dtype=dtype)  # [N, R]
     views = (wide[:, 1:3], wide[:, 4:7], wide[:, 9])  # means2d [N, 2], conics [N, 3], depths [N]
     assert not any(v.is_contiguous() for v in views)
-    got = ext.project_backward(*args, *views)
-    want = ext.project_backward(*args, *(v.contiguous() for v in views))
+    finite = ext.project_forward(*args)[5]  # [N] bool
+    got = ext.project_backward(*args, *views, finite)
+    want = ext.project_backward(*args, *(v.contiguous() for v in views), finite)
     for x, y in zip(got, want, strict=True):
         assert _same(x, y)
     # through autograd: stride-0 (expanded) and transposed gradients
@@ -343,8 +344,8 @@ def _grads_given(project, s: Splats, cam: Camera, out_grads: list[torch.Tensor])
 def test_zero_output_gradients_skip_is_exact(dtype: torch.dtype):
     """Splats whose output gradients are all zero (occluded ones, in a render) take the shortcut of
     zero gradients where the forward intermediates are finite: the same as torch autograd (0, or
-    non-finite where an intermediate overflows, for which the full chain rule runs), in whole SIMD
-    packs, mixed packs and the scalar tail; the other splats are bit-identical to a run without
+    non-finite where an intermediate overflows, for which the full chain rule runs); the other
+    ("live") splats, staged into SIMD packs and a scalar tail, are bit-identical to a run without
     any zero-gradient splat (lanes are independent)."""
     n = 2003
     s, cam = hard_scene(n, 3, dtype)

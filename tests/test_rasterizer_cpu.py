@@ -242,6 +242,39 @@ def test_multi_chunk_binning_is_deterministic():
     assert float(one[0].alpha.detach().max()) > 0.5  # the scene is in view
 
 
+@pytest.mark.parametrize("channels", [3, 5])
+def test_depth_windows_are_exact(channels: int):
+    """The forward bins and composites the depth-sorted splats in windows and stops binning onto
+    tiles whose pixels have all terminated: images and gradients are bit-identical to one window
+    (the plain binning), for small windows, the default rule and 2 threads, while far fewer
+    (splat, tile) pairs are stored on a scene that saturates."""
+    torch.manual_seed(0)
+    splats = random_scene(30000, seed=21, scale_range=(0.02, 0.15))  # dense: tiles saturate
+    splats.opacities = torch.full_like(splats.opacities, 2.0)  # logit: alpha ~ 0.88 at the centre
+    if channels != 3:
+        splats.colors = torch.rand(30000, channels)
+    cam = random_camera(64, 48, seed=21)
+    bg = torch.linspace(0.1, 0.9, channels)
+
+    def run(first_window: int, threads: int = 1):
+        torch.set_num_threads(threads)  # the fixture restores the thread count
+        r = CpuRasterizer(count_pairs=True, first_window=first_window)
+        out, g = _render_with_grads(r, splats, cam, bg)
+        return out, g, r.last_stats
+
+    plain = run(10**9)
+    assert plain[2]["depth_windows"] == 1
+    for fw, threads in ((64, 1), (0, 1), (1000, 2)):
+        out, g, st = run(fw, threads)
+        assert st["depth_windows"] > 1
+        limit = (0.5 if fw == 64 else 0.9) * plain[2]["tile_pairs"]
+        assert st["tile_pairs"] < limit, (fw, st["tile_pairs"], plain[2]["tile_pairs"])
+        for name in ("color", "alpha", "depth"):
+            assert torch.equal(getattr(out, name), getattr(plain[0], name)), (fw, name)
+        for k in ATTRS:
+            assert torch.equal(g[k], plain[1][k]), (fw, k)
+
+
 def test_pair_statistics():
     splats = random_scene(800, seed=2)
     cam = random_camera(40, 40, seed=2)
@@ -309,7 +342,7 @@ def test_clear_errors():
     n = 4
     args = [torch.zeros(n, 2), torch.zeros(n, 3), torch.zeros(n), torch.zeros(n, 4), torch.ones(n),
             torch.ones(n, dtype=torch.int32), torch.ones(n, dtype=torch.bool), torch.zeros(3), 16, 16,
-            True, False]
+            True, False, 0]
     with pytest.raises(RuntimeError, match="float32"):
         ext.forward(args[0].double(), *args[1:])
     with pytest.raises(RuntimeError, match="contiguous"):

@@ -62,9 +62,9 @@ class _ProjectFunction(torch.autograd.Function):
     def forward(  # type: ignore[override]
         ctx: Any, means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor, cam: CamArgs
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        means2d, conics, depths, radii, visible = load_extension().project_forward(
+        means2d, conics, depths, radii, visible, finite = load_extension().project_forward(
             means, quats, scales, viewmat, *cam)
-        ctx.save_for_backward(means, quats, scales, viewmat)
+        ctx.save_for_backward(means, quats, scales, viewmat, finite)
         ctx.cam = cam
         ctx.mark_non_differentiable(radii, visible)
         return means2d, conics, depths, radii, visible
@@ -72,13 +72,14 @@ class _ProjectFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, g_means2d: Tensor, g_conics: Tensor, g_depths: Tensor,  # type: ignore[override]
                  _g_radii: Tensor | None, _g_visible: Tensor | None):
-        means, quats, scales, viewmat = ctx.saved_tensors
+        means, quats, scales, viewmat, finite = ctx.saved_tensors
         dt = means.dtype
         g_means, g_quats, g_scales = load_extension().project_backward(
             means, quats, scales, viewmat, *ctx.cam,
             _rows(g_means2d, dt),  # [N, 2]
             _rows(g_conics, dt),  # [N, 3]
-            _rows(g_depths, dt))  # [N]
+            _rows(g_depths, dt),  # [N]
+            finite)  # [N] bool: all forward intermediates finite (zero gradients skip the chain rule)
         return g_means, g_quats, g_scales, None, None
 
 

@@ -34,6 +34,7 @@
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 #include <omp.h>
 
@@ -336,6 +337,36 @@ inline void fwd_core(const Cam<typename Tr<V>::S>& k, const typename Tr<V>::S* m
   f.ds = f.vis ? f.det : one;
 }
 
+// True if every lane of the mask is set.
+template <typename M>
+inline bool all_lanes(const M& m, int L) {
+  for (int l = 0; l < L; ++l)
+    if (!mlane(m, l)) return false;
+  return true;
+}
+
+// 0 in every lane where all forward intermediates of the chain rule (and the scales) and the
+// reciprocals of its divisors are finite, NaN elsewhere (x * 0 is NaN for x = +-inf or NaN; no -ffast-math here, so it is not folded).
+template <typename V>
+inline V finite_probe(const Fwd<V>& f, const V* s) {
+  const V z{};
+  V acc = (f.tx * z + f.ty * z) + (f.tz * z + f.zs * z);
+  acc += (f.xr * z + f.yr * z) + (f.inv * z + f.j00 * z) + (f.j02 * z + f.j11 * z) + f.j12 * z;
+  acc += f.n * z;
+  for (int j = 0; j < 4; ++j) acc += f.q[j] * z;
+  for (int p = 0; p < 3; ++p) {
+    for (int j = 0; j < 3; ++j) acc += f.r[p][j] * z + f.m[p][j] * z;
+    acc += (f.T0[p] * z + f.T1[p] * z) + (f.u[p] * z + f.v[p] * z) + s[p] * z;
+  }
+  acc += (f.a * z + f.b * z) + (f.c * z + f.ds * z);
+  // the chain rule's divisors (in VT: an underflow to 0 here only makes the probe conservative)
+  const V one = z + 1;
+  acc += (one / (f.ds * f.ds)) * z + (one / (f.zs * f.zs)) * z + (one / f.n) * z;
+  return acc;
+}
+
+// Backward of the L splats starting at splat i: forward intermediates in VT (the input dtype, so
+// every mask is the forward's), chain rule in VA (double lanes).
 // trunc(v / tile).clamp(0, g) followed by nan_to_num(nan=0) (tile_rects).
 template <typename V>
 inline V rect_coord(V v, V tile, V g) {
@@ -348,11 +379,17 @@ template <typename V>
 inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typename Tr<V>::S* means,
                          const typename Tr<V>::S* quats, const typename Tr<V>::S* scales,
                          typename Tr<V>::S* means2d, typename Tr<V>::S* conics, typename Tr<V>::S* depths,
-                         int32_t* radii, bool* visible) {
+                         int32_t* radii, bool* visible, bool* finite) {
   using T = typename Tr<V>::S;
   constexpr int L = Tr<V>::L;
   Fwd<V> f;
   fwd_core<V>(k, means + 3 * i, quats + 4 * i, scales + 3 * i, f);
+  {
+    const V s3[3] = {gather<V>(scales + 3 * i, 3, 0), gather<V>(scales + 3 * i, 3, 1),
+                     gather<V>(scales + 3 * i, 3, 2)};
+    const auto fin = finite_probe<V>(f, s3) == V{};
+    for (int l = 0; l < L; ++l) finite[i + l] = mlane(fin, l);
+  }
   scatter<V>(conics + 3 * i, 3, 0, f.c / f.ds);
   scatter<V>(conics + 3 * i, 3, 1, (-f.b) / f.ds);
   scatter<V>(conics + 3 * i, 3, 2, f.a / f.ds);
@@ -387,16 +424,16 @@ inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typen
 
 template <typename T>
 void forward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, int64_t N,
-                  T* means2d, T* conics, T* depths, int32_t* radii, bool* visible) {
+                  T* means2d, T* conics, T* depths, int32_t* radii, bool* visible, bool* finite) {
   using V = vec_t<T, 32 / sizeof(T)>;  // 8 floats or 4 doubles
   constexpr int L = Tr<V>::L;
   const int64_t nb = N / L;
   const int nt = std::max(1, at::get_num_threads());
 #pragma omp parallel for schedule(static) num_threads(nt) if (N >= MIN_SPLATS_PARALLEL)
   for (int64_t b = 0; b < nb; ++b)
-    forward_pack<V>(k, b * L, means, quats, scales, means2d, conics, depths, radii, visible);
+    forward_pack<V>(k, b * L, means, quats, scales, means2d, conics, depths, radii, visible, finite);
   for (int64_t i = nb * L; i < N; ++i)
-    forward_pack<T>(k, i, means, quats, scales, means2d, conics, depths, radii, visible);
+    forward_pack<T>(k, i, means, quats, scales, means2d, conics, depths, radii, visible, finite);
 }
 
 // Incoming gradients of the backward: rows of means2d [N, 2], conics [N, 3] and depths [N] with
@@ -410,36 +447,6 @@ struct GradIn {
   int64_t sm2, scn, sdp;
 };
 
-// True if every lane of the mask is set.
-template <typename M>
-inline bool all_lanes(const M& m, int L) {
-  for (int l = 0; l < L; ++l)
-    if (!mlane(m, l)) return false;
-  return true;
-}
-
-// 0 in every lane where all forward intermediates of the chain rule (and the scales) and the
-// reciprocals of its divisors are finite, NaN elsewhere (x * 0 is NaN for x = +-inf or NaN; no -ffast-math here, so it is not folded).
-template <typename V>
-inline V finite_probe(const Fwd<V>& f, const V* s) {
-  const V z{};
-  V acc = (f.tx * z + f.ty * z) + (f.tz * z + f.zs * z);
-  acc += (f.xr * z + f.yr * z) + (f.inv * z + f.j00 * z) + (f.j02 * z + f.j11 * z) + f.j12 * z;
-  acc += f.n * z;
-  for (int j = 0; j < 4; ++j) acc += f.q[j] * z;
-  for (int p = 0; p < 3; ++p) {
-    for (int j = 0; j < 3; ++j) acc += f.r[p][j] * z + f.m[p][j] * z;
-    acc += (f.T0[p] * z + f.T1[p] * z) + (f.u[p] * z + f.v[p] * z) + s[p] * z;
-  }
-  acc += (f.a * z + f.b * z) + (f.c * z + f.ds * z);
-  // the chain rule's divisors (in VT: an underflow to 0 here only makes the probe conservative)
-  const V one = z + 1;
-  acc += (one / (f.ds * f.ds)) * z + (one / (f.zs * f.zs)) * z + (one / f.n) * z;
-  return acc;
-}
-
-// Backward of the L splats starting at splat i: forward intermediates in VT (the input dtype, so
-// every mask is the forward's), chain rule in VA (double lanes).
 template <typename VT, typename VA>
 inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typename Tr<VT>::S* means,
                           const typename Tr<VT>::S* quats, const typename Tr<VT>::S* scales,
@@ -581,19 +588,56 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
                 down(A(k.R[0][j]) * gtx + A(k.R[1][j]) * gty + A(k.R[2][j]) * gtz));
 }
 
+// Backward over the live splats only: those with a non-zero incoming gradient or a non-finite
+// forward intermediate (finite[i] false; there torch's chain rule yields NaN). Every other splat's
+// gradient is exactly zero, as written by the caller (outputs zero-initialised). Live splats are
+// staged L at a time into contiguous rows, so packs stay full however sparse they are; lanes do
+// not interact, so each splat's result is the same as in a pack of its neighbours.
 template <typename T>
-void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, int64_t N,
-                   const GradIn<T>& gi, T* g_means, T* g_quats, T* g_scales) {
+void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, const bool* finite,
+                   int64_t N, const GradIn<T>& gi, T* g_means, T* g_quats, T* g_scales) {
   using VT = vec_t<T, 4>;
   using VA = vec_t<double, 4>;
   constexpr int L = 4;
-  const int64_t nb = N / L;
+  std::vector<int64_t> live;
+  live.reserve(static_cast<size_t>(N));
+  for (int64_t i = 0; i < N; ++i) {
+    const T* m2 = gi.m2 + gi.sm2 * i;
+    const T* cn = gi.cn + gi.scn * i;
+    const bool zero = m2[0] == T(0) && m2[1] == T(0) && cn[0] == T(0) && cn[1] == T(0) && cn[2] == T(0) &&
+                      gi.dp[gi.sdp * i] == T(0);
+    if (!(zero && finite[i])) live.push_back(i);
+  }
+  const int64_t nl = static_cast<int64_t>(live.size()), nb = nl / L;
   const int nt = std::max(1, at::get_num_threads());
-#pragma omp parallel for schedule(static) num_threads(nt) if (N >= MIN_SPLATS_PARALLEL)
-  for (int64_t b = 0; b < nb; ++b)
-    backward_pack<VT, VA>(k, b * L, means, quats, scales, gi, g_means, g_quats, g_scales);
-  for (int64_t i = nb * L; i < N; ++i)
-    backward_pack<T, double>(k, i, means, quats, scales, gi, g_means, g_quats, g_scales);
+#pragma omp parallel for schedule(static) num_threads(nt) if (nl >= MIN_SPLATS_PARALLEL)
+  for (int64_t b = 0; b < nb; ++b) {
+    T lm[3 * L], lq[4 * L], ls[3 * L], lg2[2 * L], lgc[3 * L], lgd[L], om[3 * L], oq[4 * L], os[3 * L];
+    for (int l = 0; l < L; ++l) {
+      const int64_t i = live[b * L + l];
+      for (int j = 0; j < 3; ++j) {
+        lm[3 * l + j] = means[3 * i + j];
+        ls[3 * l + j] = scales[3 * i + j];
+        lgc[3 * l + j] = gi.cn[gi.scn * i + j];
+      }
+      for (int j = 0; j < 4; ++j) lq[4 * l + j] = quats[4 * i + j];
+      lg2[2 * l] = gi.m2[gi.sm2 * i];
+      lg2[2 * l + 1] = gi.m2[gi.sm2 * i + 1];
+      lgd[l] = gi.dp[gi.sdp * i];
+    }
+    const GradIn<T> gl{lg2, lgc, lgd, 2, 3, 1};
+    backward_pack<VT, VA>(k, 0, lm, lq, ls, gl, om, oq, os);
+    for (int l = 0; l < L; ++l) {
+      const int64_t i = live[b * L + l];
+      for (int j = 0; j < 3; ++j) {
+        g_means[3 * i + j] = om[3 * l + j];
+        g_scales[3 * i + j] = os[3 * l + j];
+      }
+      for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = oq[4 * l + j];
+    }
+  }
+  for (int64_t b = nb * L; b < nl; ++b)
+    backward_pack<T, double>(k, live[b], means, quats, scales, gi, g_means, g_quats, g_scales);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -639,7 +683,8 @@ void check_common(const at::Tensor& means, const at::Tensor& quats, const at::Te
 //       world-to-camera (OpenCV), all float32 or all float64, contiguous; fx, fy, cx, cy (pixels);
 //       width, height; near_plane, frustum_clamp, eps2d, tile (projection.py constants).
 // Returns: means2d [N,2], conics [N,3] (a, b, c of the inverse 2D covariance), depths [N]
-//          (camera z, also of culled splats), radii [N] int32 (0 if culled), visible [N] bool.
+//          (camera z, also of culled splats), radii [N] int32 (0 if culled), visible [N] bool,
+//          finite [N] bool (every intermediate the backward's chain rule uses is finite).
 std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
                                         at::Tensor viewmat, double fx, double fy, double cx, double cy,
                                         int64_t width, int64_t height, double near_plane,
@@ -652,19 +697,20 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
   at::Tensor depths = at::empty({N}, opts);
   at::Tensor radii = at::empty({N}, opts.dtype(at::kInt));
   at::Tensor visible = at::empty({N}, opts.dtype(at::kBool));
+  at::Tensor finite = at::empty({N}, opts.dtype(at::kBool));
   auto run = [&](auto zero) {
     using T = decltype(zero);
     const Cam<T> k = make_cam<T>(viewmat, fx, fy, cx, cy, width, height, near_plane, frustum_clamp,
                                  eps2d, tile);
     forward_impl<T>(k, means.data_ptr<T>(), quats.data_ptr<T>(), scales.data_ptr<T>(), N,
                     means2d.data_ptr<T>(), conics.data_ptr<T>(), depths.data_ptr<T>(),
-                    radii.data_ptr<int32_t>(), visible.data_ptr<bool>());
+                    radii.data_ptr<int32_t>(), visible.data_ptr<bool>(), finite.data_ptr<bool>());
   };
   if (means.scalar_type() == at::kFloat)
     run(float(0));
   else
     run(double(0));
-  return {means2d, conics, depths, radii, visible};
+  return {means2d, conics, depths, radii, visible, finite};
 }
 
 // Incoming gradient of the backward: [N] or [N, cols] in the splats' dtype whose elements within a
@@ -677,31 +723,35 @@ void check_grad(const at::Tensor& t, const char* name, at::ScalarType st, int64_
 
 // Backward (vector-Jacobian product of project_forward's differentiable outputs).
 // Args: the forward's inputs, then v_means2d [N,2], v_conics [N,3], v_depths [N] (same dtype;
-//       elements within a row contiguous, rows at any stride: see check_grad).
+//       elements within a row contiguous, rows at any stride: see check_grad), and the forward's
+//       finite [N] bool (splats with zero incoming gradients and finite[i] get zero gradients
+//       without evaluating their chain rule).
 // Returns: v_means [N,3], v_quats [N,4] (w.r.t. the unnormalised input), v_scales [N,3].
 std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales,
                                          at::Tensor viewmat, double fx, double fy, double cx,
                                          double cy, int64_t width, int64_t height, double near_plane,
                                          double frustum_clamp, double eps2d, int64_t tile,
                                          at::Tensor v_means2d, at::Tensor v_conics,
-                                         at::Tensor v_depths) {
+                                         at::Tensor v_depths, at::Tensor finite) {
   check_common(means, quats, scales, viewmat, width, height, tile);
   const int64_t N = means.size(0);
   const auto st = means.scalar_type();
   check_grad(v_means2d, "v_means2d", st, N, 2);
   check_grad(v_conics, "v_conics", st, N, 3);
   check_grad(v_depths, "v_depths", st, N, 0);
+  check_input(finite, "finite", at::kBool, N, 0);
   auto opts = means.options();
-  at::Tensor g_means = at::empty({N, 3}, opts);
-  at::Tensor g_quats = at::empty({N, 4}, opts);
-  at::Tensor g_scales = at::empty({N, 3}, opts);
+  at::Tensor g_means = at::zeros({N, 3}, opts);
+  at::Tensor g_quats = at::zeros({N, 4}, opts);
+  at::Tensor g_scales = at::zeros({N, 3}, opts);
   auto run = [&](auto zero) {
     using T = decltype(zero);
     const Cam<T> k = make_cam<T>(viewmat, fx, fy, cx, cy, width, height, near_plane, frustum_clamp,
                                  eps2d, tile);
     const GradIn<T> gi{v_means2d.data_ptr<T>(), v_conics.data_ptr<T>(), v_depths.data_ptr<T>(),
                        v_means2d.stride(0), v_conics.stride(0), v_depths.stride(0)};
-    backward_impl<T>(k, means.data_ptr<T>(), quats.data_ptr<T>(), scales.data_ptr<T>(), N, gi,
+    backward_impl<T>(k, means.data_ptr<T>(), quats.data_ptr<T>(), scales.data_ptr<T>(),
+                     finite.data_ptr<bool>(), N, gi,
                      g_means.data_ptr<T>(), g_quats.data_ptr<T>(), g_scales.data_ptr<T>());
   };
   if (st == at::kFloat)

@@ -11,10 +11,16 @@
 // for depth), the outputs are colour = acc[..., :C] + T_final bg, alpha = 1 - T_final and
 // depth = acc[..., C], computed exactly as torch_ref does (same float32 operations).
 //
-// Pipeline (forward): per-splat records (original order, sequential) -> stable LSD radix sort of
-// the visible splats by depth -> records gathered into depth order (one cache line each) ->
-// binning: 3DGS getRect (float32, bit-identical to torch's tile_rects), a half-row cull mask per
-// (splat, tile), stable counting sort by tile (O(pairs)) -> compositing.
+// Pipeline (forward): per-splat records and 3DGS getRect tile rects (float32, bit-identical to
+// torch's tile_rects; original order, sequential) -> stable LSD radix sort of the visible splats by
+// depth -> depth windows of geometrically growing size, each: records of the splats whose rect
+// meets a tile still compositing gathered into depth order (one cache line each), binning (a
+// half-row mask per (splat, tile), restricted to the tile's half-rows still compositing; stable
+// counting sort by tile, O(pairs)) and compositing, with per-tile state carried across windows.
+// Once a tile's pixels have all terminated (T < 1e-4 would be crossed), no later splat is binned
+// onto it: in scenes that saturate, most (splat, tile) pairs behind the opaque front are never
+// stored or visited, by the forward, the backward or the reduction. The result is bit-identical
+// to binning everything at once (tested).
 //
 // Work decomposition: one OpenMP task per 16x16 tile (dynamic schedule, longest lists first).
 // Inside a tile, splats are the outer loop and pixels the inner loop: 32 "half-rows" of 8 pixels,
@@ -65,6 +71,11 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f;
 constexpr float T_MIN = 1e-4f;
 constexpr int PREFETCH = 8;  // splats ahead in a tile list
 constexpr int64_t MIN_PAIRS_PARALLEL = 16384;  // fewer (splat, tile) pairs: one thread (~1 ms of work)
+// Depth windows of the forward: the first holds max(WINDOW_MIN, M / WINDOW_FIRST_DIV) splats, each
+// next one twice as many (at most ~log2(WINDOW_FIRST_DIV) + 1 windows).
+constexpr int64_t WINDOW_MIN = 16384;
+constexpr int64_t WINDOW_FIRST_DIV = 16;
+constexpr int NSTATS = 17;  // see forward()
 
 // Packed per-splat record (depth-sorted order), one cache line.
 struct alignas(64) Geo {
@@ -267,6 +278,16 @@ struct Binning {
   TVec<int64_t> tile_off;    // [ntiles + 1]
   TVec<int32_t> tile_list;   // [P] sorted splat index per slot
   TVec<uint32_t> tile_mask;  // [P] half-row cull mask per slot
+  static Binning empty(int gx, int gy) {
+    Binning b;
+    b.gx = gx;
+    b.gy = gy;
+    b.ntiles = gx * gy;
+    b.tile_off.assign(b.ntiles + 1, 0);
+    b.tile_list.resize(0);
+    b.tile_mask.resize(0);
+    return b;
+  }
 };
 
 struct Rect {
@@ -300,16 +321,85 @@ Rect tile_rect(float mx, float my, int radius, int gx, int gy) {
   return {lo(px, gx), lo(py, gy), hi(px, gx), hi(py, gy)};
 }
 
-// Binning: for every splat (in depth order) and every tile of its rect, the half-row mask of its
-// cull ellipse on that tile; tiles with an empty mask are dropped (exact: no pixel there can reach
-// alpha >= 1/255). Stable counting sort by tile: tile lists stay in depth order.
-Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
+// The forward's inputs in the original splat order (float32 / int32, contiguous).
+struct SplatInputs {
+  const float *m2, *cn, *op, *col, *dep;  // means2d [N,2], conics [N,3], opacities [N], colors [N,C], depths [N]
+  const int32_t* rad;                     // radii [N]
+  int C, gx, gy;
+  bool cull;
+
+  Rect rect(int64_t s) const { return tile_rect(m2[2 * s], m2[2 * s + 1], rad[s], gx, gy); }
+
+  // Packed record of splat s with tile rect rc (cull threshold, ellipse half-height, features).
+  Geo geo(int64_t s, const Rect& rc) const {
+    Geo g;
+    g.mx = m2[2 * s];
+    g.my = m2[2 * s + 1];
+    g.a = cn[3 * s];
+    g.b = cn[3 * s + 1];
+    g.c = cn[3 * s + 2];
+    g.o = op[s];
+    const double a = g.a, b = g.b, c = g.c;
+    const double det = a * c - b * b;
+    g.det = static_cast<float>(det);
+    g.inv_a = static_cast<float>(1.0 / a);
+    if (!cull || !(det > 0.0) || !(a > 0.0) || !(c > 0.0) || !std::isfinite(det)) {
+      g.thr = std::numeric_limits<float>::infinity();
+    } else if (!(g.o >= ALPHA_MIN)) {
+      g.thr = -1.0f;  // o exp(power) <= o < 1/255 everywhere
+    } else {
+      // alpha >= 1/255  <=>  Q <= 2 ln(255 o); inflated for the float rounding of the kernel's
+      // power (relative error ~ eps x condition of the conic) and of the fast exp.
+      const double t = 2.0 * static_cast<double>(std::log(g.o * 255.0f));
+      const double kappa = (std::fabs(a) + std::fabs(c) + 2.0 * std::fabs(b)) * (a + c) / det;
+      const double thr = t * (1.0 + 1e-3 + 1e-5 * kappa) + 1e-3;
+      g.thr = thr < 1e30 ? static_cast<float>(thr) : std::numeric_limits<float>::infinity();
+    }
+    g.rect[0] = static_cast<int16_t>(rc.x0);
+    g.rect[1] = static_cast<int16_t>(rc.y0);
+    g.rect[2] = static_cast<int16_t>(rc.x1);
+    g.rect[3] = static_cast<int16_t>(rc.y1);
+    if (C == 3) {
+      for (int c2 = 0; c2 < 3; ++c2) g.f[c2] = col[s * 3 + c2];
+      g.f[3] = dep[s];
+    } else {
+      for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = 0.0f;
+    }
+    if (std::isinf(g.thr)) {
+      g.ry = std::numeric_limits<float>::infinity();
+    } else if (g.thr < 0.0f) {
+      g.ry = -1.0f;
+    } else {  // max |dy| on Q = thr is sqrt(thr a / det)
+      g.ry = static_cast<float>(std::sqrt(static_cast<double>(g.thr) * a / det) * (1.0 + 1e-4) + 1e-3);
+    }
+    return g;
+  }
+
+  // Features [colors, depth] of splat s (when C != 3; else they ride in Geo::f).
+  void features(int64_t s, float* out) const {
+    for (int c = 0; c < C; ++c) out[c] = col[s * C + c];
+    out[C] = dep[s];
+  }
+};
+
+// Binning of one depth window [lo, hi) of the depth-sorted splats: for every splat and every tile
+// of its rect, the half-row mask of its cull ellipse on that tile, restricted to the tile's
+// half-rows that are still compositing (alive[tile]; a half-row whose 8 pixels have all terminated
+// never composites a later splat); pairs with an empty mask are dropped (exact: no pixel there can
+// reach alpha >= 1/255 or take part). Stable counting sort by tile: tile lists stay in depth order.
+// Only splats whose rect meets a live tile are gathered into depth order (geo[i] = geo_orig[s],
+// feat[i], used[i] = 1); the others are skipped (used[i] = 0) after reading their rect only.
+Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* rects, const int32_t* order,
+                   Geo* geo, float* feat, uint8_t* used, int64_t lo_w, int64_t hi_w, const uint32_t* alive,
+                   int nth) {
+  const int gx = in.gx, gy = in.gy, NF = in.C + 1;
   Binning b;
-  b.gx = (W + TILE - 1) / TILE;
-  b.gy = (H + TILE - 1) / TILE;
-  b.ntiles = b.gx * b.gy;
+  b.gx = gx;
+  b.gy = gy;
+  b.ntiles = gx * gy;
   const int T = b.ntiles;
-  nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 16384 + 1)));
+  const int64_t M = hi_w - lo_w;
+  nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 4096 + 1)));
   // per (chunk, tile): the chunk's pair count, then (below) its first slot in that tile's list
   std::vector<int64_t> cursor(static_cast<size_t>(nth) * T, 0);
   // per thread: the (tile, mask) pairs with a non-empty mask of its splat chunk, in order
@@ -318,22 +408,35 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
   // chunks, so every chunk runs whatever team size OpenMP grants)
 #pragma omp parallel for num_threads(nth) schedule(static, 1)
   for (int t = 0; t < nth; ++t) {
-    const int64_t lo = M * t / nth, hi = M * (t + 1) / nth;
+    const int64_t lo = lo_w + M * t / nth, hi = lo_w + M * (t + 1) / nth;
     // thread-local histogram and pair list (per-thread rows of shared arrays would share cache
     // lines between threads: measured 2-4x slower)
     std::vector<int64_t> h(T, 0);
     std::vector<TileMask> fd;
-    fd.reserve(static_cast<size_t>((hi - lo) * 4));
-    const int gxl = b.gx;
+    fd.reserve(static_cast<size_t>((hi - lo) * 2));
     for (int64_t i = lo; i < hi; ++i) {
-      const Geo& g = geo[i];
-      const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
+      if (i + 2 * PREFETCH < hi) __builtin_prefetch(rects + 4 * order[i + 2 * PREFETCH]);
+      if (i + PREFETCH < hi) __builtin_prefetch(geo_orig + order[i + PREFETCH]);
+      const int64_t s = order[i];
+      const int16_t* r4 = rects + 4 * s;
+      const Rect rc = {r4[0], r4[1], r4[2], r4[3]};
+      uint32_t any = 0;
+      for (int ty = rc.y0; ty < rc.y1; ++ty)
+        for (int tx = rc.x0; tx < rc.x1; ++tx) any |= alive[ty * gx + tx];
+      used[i] = any != 0;
+      if (!any) continue;  // every tile of the rect has terminated
+      const Geo& g = geo[i] = geo_orig[s];
+      if (NF != 4) in.features(s, feat + i * NF);
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
+        const uint32_t* arow = alive + ty * gx;
+        uint32_t anyr = 0;
+        for (int tx = rc.x0; tx < rc.x1; ++tx) anyr |= arow[tx];
+        if (!anyr) continue;  // every tile of this rect row has terminated
         const RowSpans sp = ellipse_spans(g, static_cast<float>(ty * TILE));
         for (int tx = rc.x0; tx < rc.x1; ++tx) {
-          const uint32_t m = span_mask(sp, static_cast<float>(tx * TILE));
+          const uint32_t m = arow[tx] ? span_mask(sp, static_cast<float>(tx * TILE)) & arow[tx] : 0u;
           if (m) {
-            const int tile = ty * gxl + tx;
+            const int tile = ty * gx + tx;
             fd.push_back({static_cast<int32_t>(i), tile, m});
             h[tile]++;
           }
@@ -370,6 +473,36 @@ Binning bin_tiles(const Geo* geo, int64_t M, int W, int H, int nth) {
       const int64_t slot = cur[fd.tile]++;
       tl[slot] = fd.splat;
       tm[slot] = fd.mask;
+    }
+  }
+  return b;
+}
+
+// The tile lists of several depth windows concatenated per tile (window order = depth order).
+Binning concat_windows(std::vector<Binning>& wins, int gx, int gy) {
+  if (wins.size() == 1) return std::move(wins[0]);
+  Binning b;
+  b.gx = gx;
+  b.gy = gy;
+  b.ntiles = gx * gy;
+  const int T = b.ntiles;
+  b.tile_off.assign(T + 1, 0);
+  int64_t run = 0;
+  for (int tile = 0; tile < T; ++tile) {
+    b.tile_off[tile] = run;
+    for (const Binning& w : wins) run += w.tile_off[tile + 1] - w.tile_off[tile];
+  }
+  b.tile_off[T] = run;
+  b.tile_list.resize(run);
+  b.tile_mask.resize(run);
+#pragma omp parallel for schedule(static) if (run >= MIN_PAIRS_PARALLEL)
+  for (int tile = 0; tile < T; ++tile) {
+    int64_t dst = b.tile_off[tile];
+    for (const Binning& w : wins) {
+      const int64_t s0 = w.tile_off[tile], n = w.tile_off[tile + 1] - s0;
+      std::copy(w.tile_list.p + s0, w.tile_list.p + s0 + n, b.tile_list.p + dst);
+      std::copy(w.tile_mask.p + s0, w.tile_mask.p + s0 + n, b.tile_mask.p + dst);
+      dst += n;
     }
   }
   return b;
@@ -417,23 +550,39 @@ struct ImageGrad {
 };
 
 // ---------------------------------------------------------------------------------------------
-// Forward kernel on one tile. State arrays are tile-local [256] (pixel p = r * 16 + 8 h + lane,
-// half-row bit h * 16 + r).
+// Compositing state of one tile, kept across depth windows (pixel p = r * 16 + 8 h + lane, half-row
+// bit h * 16 + r): transmittance T, done (-1: terminated or outside the image), last contributor
+// (tile-list position), accumulated features acc [NF][256].
+struct TileView {
+  float* T;
+  int32_t* done;
+  int32_t* last;
+  float* acc;
+};
+
+inline void tile_begin(const TileGeom& tg, int NF, const TileView& s) {
+  for (int p = 0; p < TPIX; ++p) {
+    const int r = p / TILE, x = p % TILE;
+    s.T[p] = 1.0f;
+    s.last[p] = -1;
+    s.done[p] = (r < tg.ny && x < tg.nx) ? 0 : -1;
+  }
+  for (int k = 0; k < NF * TPIX; ++k) s.acc[k] = 0.0f;
+}
+
+// Forward kernel on one tile over one segment of its list (n slots whose tile-list positions start
+// at jbase); updates the tile's state and its mask of half-rows still compositing (alive).
 template <int NFT, bool COUNT>
 void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, int nf,
                   const int32_t* __restrict__ list, const uint32_t* __restrict__ lmask, int64_t n,
-                  const TileGeom& tg, int W, float* __restrict__ T, int32_t* __restrict__ done,
-                  int32_t* __restrict__ last, float* __restrict__ acc, const ImageOut& out,
+                  int64_t jbase, const TileGeom& tg, const TileView& s, uint32_t& alive_io,
                   int64_t* stats) {
   const int NF = NFT > 0 ? NFT : nf;
-  for (int p = 0; p < TPIX; ++p) {
-    const int r = p / TILE, x = p % TILE;
-    T[p] = 1.0f;
-    last[p] = -1;
-    done[p] = (r < tg.ny && x < tg.nx) ? 0 : -1;
-  }
-  for (int k = 0; k < NF * TPIX; ++k) acc[k] = 0.0f;
-  uint32_t alive = tg.valid_rows;
+  float* __restrict__ T = s.T;
+  int32_t* __restrict__ done = s.done;
+  int32_t* __restrict__ last = s.last;
+  float* __restrict__ acc = s.acc;
+  uint32_t alive = alive_io;
   const float fx0 = static_cast<float>(tg.tx0), fy0 = static_cast<float>(tg.ty0);
   const VF px_h[2] = {set1(fx0 + 0.5f) + iota(), set1(fx0 + 8.5f) + iota()};
   const VF one = set1(1.0f), amin = set1(ALPHA_MIN), tmin = set1(T_MIN), zf = zero();
@@ -446,7 +595,7 @@ void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, i
     const int32_t gi = list[jl];
     const Geo& g = geo[gi];
     const float* f = NFT == 4 ? g.f : feat + static_cast<int64_t>(gi) * NF;
-    const VI jv = iset1(static_cast<int32_t>(jl));
+    const VI jv = iset1(static_cast<int32_t>(jbase + jl));
     do {
       const int hr = __builtin_ctz(rows);
       rows &= rows - 1;
@@ -476,21 +625,40 @@ void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, i
       }
     } while (rows);
   }
+  alive_io = alive;
+  if (COUNT) {
+    stats[0] += n_contrib;
+    stats[1] += n_eval;
+  }
+}
+
+// Writes one tile's final state into the output images.
+inline void tile_end(const TileGeom& tg, int W, int NF, const TileView& s, const ImageOut& out) {
   for (int r = 0; r < tg.ny; ++r) {
     for (int x = 0; x < tg.nx; ++x) {
       const int p = r * TILE + x;
       const int64_t o = static_cast<int64_t>(tg.ty0 + r) * W + (tg.tx0 + x);
-      const float Tp = T[p];
+      const float Tp = s.T[p];
       out.T[o] = Tp;
       out.alpha[o] = 1.0f - Tp;
-      out.last[o] = last[p];
-      for (int c = 0; c < NF - 1; ++c) out.color[o * (NF - 1) + c] = acc[c * TPIX + p] + Tp * out.bg[c];
-      out.depth[o] = acc[(NF - 1) * TPIX + p];
+      out.last[o] = s.last[p];
+      for (int c = 0; c < NF - 1; ++c) out.color[o * (NF - 1) + c] = s.acc[c * TPIX + p] + Tp * out.bg[c];
+      out.depth[o] = s.acc[(NF - 1) * TPIX + p];
     }
   }
-  if (COUNT) {
-    stats[0] += n_contrib;
-    stats[1] += n_eval;
+}
+
+// Writes the outputs of a tile that no splat reached (T = 1, colour = background).
+inline void tile_end_empty(const TileGeom& tg, int W, int NF, const ImageOut& out) {
+  for (int r = 0; r < tg.ny; ++r) {
+    for (int x = 0; x < tg.nx; ++x) {
+      const int64_t o = static_cast<int64_t>(tg.ty0 + r) * W + (tg.tx0 + x);
+      out.T[o] = 1.0f;
+      out.alpha[o] = 0.0f;
+      out.last[o] = -1;
+      for (int c = 0; c < NF - 1; ++c) out.color[o * (NF - 1) + c] = out.bg[c];
+      out.depth[o] = 0.0f;
+    }
   }
 }
 
@@ -637,18 +805,21 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 // Args: means2d [N,2], conics [N,3], opacities [N], colors [N,C], depths [N] (sort key and the
 //       last feature channel: features = [colors, depths], NF = C + 1), radii [N] int32,
 //       visible [N] bool, background [C]; width, height; cull
-//       (exact culling on/off); count (pair statistics).
+//       (exact culling on/off); count (pair statistics); first_window (splats in the first depth
+//       window, each next one twice as many; <= 0: max(WINDOW_MIN, M / WINDOW_FIRST_DIV)).
 // Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
 //          last contributor, -1 if none), then the state for the backward: order [M] int32,
 //          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
-//          tile_mask [P] int32, and stats [16] float64: contrib pairs, evaluated fwd vectors,
+//          tile_mask [P] int32, used [M] uint8 (1: the splat has a record in geo/feat_sorted; 0:
+//          it was never binned, its rows there are unset), and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
 //          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd,
-//          raster bwd, bwd reduction, then the process CPU times of the same six stages.
+//          raster bwd, bwd reduction, then the process CPU times of the same six stages, then the
+//          number of depth windows.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                    at::Tensor visible, at::Tensor background, int64_t width,
-                                   int64_t height, bool cull, bool count) {
+                                   int64_t height, bool cull, bool count, int64_t first_window) {
   check_f32(means2d, "means2d", 2);
   check_f32(conics, "conics", 2);
   check_f32(opacities, "opacities", 1);
@@ -678,63 +849,24 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   const Stamp t0 = now();
 
   const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
-  // per-splat records in the original order (sequential reads and writes), then one gathered
-  // line per splat in depth order (measured: faster than packing straight from gathered inputs)
+  SplatInputs in{means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
+                 colors.data_ptr<float>(), depths.data_ptr<float>(), radii.data_ptr<int32_t>(),
+                 C, gx, gy, cull};
+  // per-splat records and tile rects in the original order (a sequential pass over the inputs;
+  // gathering a splat's record later costs one random line instead of five)
   AlignedBuf<Geo> geo_orig(static_cast<size_t>(std::max<int64_t>(N, 1)));
+  AlignedBuf<int16_t> rects(static_cast<size_t>(std::max<int64_t>(N, 1)) * 4);
   {
-    const float* m2 = means2d.data_ptr<float>();
-    const float* cn = conics.data_ptr<float>();
-    const float* op = opacities.data_ptr<float>();
-    const float* col = colors.data_ptr<float>();
-    const float* dep = depths.data_ptr<float>();
     const bool* vis = visible.data_ptr<bool>();
-    const int32_t* rad = radii.data_ptr<int32_t>();
-    Geo* go = geo_orig.p;
-    at::parallel_for(0, N, 32768, [&](int64_t lo, int64_t hi) {
+    int16_t* r4 = rects.p;
+    at::parallel_for(0, N, 16384, [&](int64_t lo, int64_t hi) {
       for (int64_t s = lo; s < hi; ++s) {
-        if (!vis[s]) continue;
-        Geo g;
-        g.mx = m2[2 * s];
-        g.my = m2[2 * s + 1];
-        g.a = cn[3 * s];
-        g.b = cn[3 * s + 1];
-        g.c = cn[3 * s + 2];
-        g.o = op[s];
-        const double a = g.a, b = g.b, c = g.c;
-        const double det = a * c - b * b;
-        g.det = static_cast<float>(det);
-        g.inv_a = static_cast<float>(1.0 / a);
-        if (!cull || !(det > 0.0) || !(a > 0.0) || !(c > 0.0) || !std::isfinite(det)) {
-          g.thr = std::numeric_limits<float>::infinity();
-        } else if (!(g.o >= ALPHA_MIN)) {
-          g.thr = -1.0f;  // o exp(power) <= o < 1/255 everywhere
-        } else {
-          // alpha >= 1/255  <=>  Q <= 2 ln(255 o); inflated for the float rounding of the kernel's
-          // power (relative error ~ eps x condition of the conic) and of the fast exp.
-          const double t = 2.0 * static_cast<double>(std::log(g.o * 255.0f));
-          const double kappa = (std::fabs(a) + std::fabs(c) + 2.0 * std::fabs(b)) * (a + c) / det;
-          const double thr = t * (1.0 + 1e-3 + 1e-5 * kappa) + 1e-3;
-          g.thr = thr < 1e30 ? static_cast<float>(thr) : std::numeric_limits<float>::infinity();
-        }
-        const Rect rc = tile_rect(g.mx, g.my, rad[s], gx, gy);
-        g.rect[0] = static_cast<int16_t>(rc.x0);
-        g.rect[1] = static_cast<int16_t>(rc.y0);
-        g.rect[2] = static_cast<int16_t>(rc.x1);
-        g.rect[3] = static_cast<int16_t>(rc.y1);
-        if (NF == 4) {
-          for (int c2 = 0; c2 < 3; ++c2) g.f[c2] = col[s * 3 + c2];
-          g.f[3] = dep[s];
-        } else {
-          for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = 0.0f;
-        }
-        if (std::isinf(g.thr)) {
-          g.ry = std::numeric_limits<float>::infinity();
-        } else if (g.thr < 0.0f) {
-          g.ry = -1.0f;
-        } else {  // max |dy| on Q = thr is sqrt(thr a / det)
-          g.ry = static_cast<float>(std::sqrt(static_cast<double>(g.thr) * a / det) * (1.0 + 1e-4) + 1e-3);
-        }
-        go[s] = g;
+        const Rect rc = vis[s] ? in.rect(s) : Rect{0, 0, 0, 0};
+        r4[4 * s] = static_cast<int16_t>(rc.x0);
+        r4[4 * s + 1] = static_cast<int16_t>(rc.y0);
+        r4[4 * s + 2] = static_cast<int16_t>(rc.x1);
+        r4[4 * s + 3] = static_cast<int16_t>(rc.y1);
+        if (vis[s]) geo_orig.p[s] = in.geo(s, rc);
       }
     });
   }
@@ -746,67 +878,92 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto feat_t = at::empty({NF == 4 ? 0 : M, NF}, at::kFloat);
   Geo* geo = reinterpret_cast<Geo*>(geo_t.data_ptr<float>());
   TORCH_CHECK(reinterpret_cast<uintptr_t>(geo) % 64 == 0 || M == 0, "rasterize_cpu: misaligned buffer");
-  {
-    const Geo* go = geo_orig.p;
-    const float* col = colors.data_ptr<float>();
-    const float* dep = depths.data_ptr<float>();
-    float* fs = feat_t.data_ptr<float>();
-    at::parallel_for(0, M, 32768, [&](int64_t lo, int64_t hi) {
-      for (int64_t i = lo; i < hi; ++i) {
-        if (i + 16 < hi) __builtin_prefetch(go + order[i + 16]);
-        geo[i] = go[order[i]];
-        if (NF != 4) {
-          const int64_t o = order[i];
-          for (int c = 0; c < C; ++c) fs[i * NF + c] = col[o * C + c];
-          fs[i * NF + C] = dep[o];
-        }
-      }
-    });
-  }
-  const Stamp t3 = now();
-  Binning bins = bin_tiles(geo, M, W, H, nth);
-  const Stamp t4 = now();
-  const int T = bins.ntiles;
-  const int64_t P = bins.tile_off[T];
-
   auto color_t = at::empty({H, W, NF - 1}, at::kFloat);
   auto alpha_t = at::empty({H, W}, at::kFloat);
   auto depth_t = at::empty({H, W}, at::kFloat);
   auto Tf_t = at::empty({H, W}, at::kFloat);
   auto last_t = at::empty({H, W}, at::kInt);
-  auto stats_t = at::zeros({16}, at::kDouble);
-  std::vector<int64_t> work(T);
-  for (int t = 0; t < T; ++t) work[t] = bins.tile_off[t + 1] - bins.tile_off[t];
-  const std::vector<int32_t> sched = tile_schedule(work);
+  auto stats_t = at::zeros({NSTATS}, at::kDouble);
+  auto used_t = at::empty({M}, at::kByte);  // per depth index: has a record (geo, feat) and may blend
+  const int T = gx * gy;
+  // per-tile compositing state (O(pixels)), kept across the depth windows
+  AlignedBuf<float> s_T(static_cast<size_t>(T) * TPIX), s_acc(static_cast<size_t>(T) * NF * TPIX);
+  AlignedBuf<int32_t> s_done(static_cast<size_t>(T) * TPIX), s_last(static_cast<size_t>(T) * TPIX);
+  auto view = [&](int tile) {
+    const size_t o = static_cast<size_t>(tile) * TPIX;
+    return TileView{s_T.p + o, s_done.p + o, s_last.p + o, s_acc.p + o * NF};
+  };
+  std::vector<uint32_t> alive(T);  // per tile: half-rows still compositing
+  std::vector<int64_t> len(T, 0);  // per tile: list length so far (0: state not yet set up)
+  for (int tile = 0; tile < T; ++tile) alive[tile] = tile_geom(tile, gx, W, H).valid_rows;
   std::vector<int64_t> tstats(static_cast<size_t>(nth) * 8, 0);
-  const int nth_tiles = P < MIN_PAIRS_PARALLEL ? 1 : nth;
-  {
-    const float* fs = feat_t.data_ptr<float>();
-    const ImageOut iout{color_t.data_ptr<float>(), alpha_t.data_ptr<float>(), depth_t.data_ptr<float>(),
-                        Tf_t.data_ptr<float>(), last_t.data_ptr<int32_t>(), background.data_ptr<float>()};
+  // Depth windows [lo, hi) of geometrically growing size: each is gathered into depth order,
+  // binned onto the half-rows still compositing and composited; once a tile's pixels have all
+  // terminated, later splats are neither binned onto it nor stored (the image, the last
+  // contributors and hence the backward are those of one full binning; tested bit for bit).
+  std::vector<Binning> wins;
+  const Stamp t3 = now();
+  double bin_w = 0, bin_c = 0, ras_w = 0, ras_c = 0;
+  int64_t n_windows = 0;
+  const float* fs = feat_t.data_ptr<float>();
+  const int64_t w0 = first_window > 0 ? first_window : std::max<int64_t>(WINDOW_MIN, M / WINDOW_FIRST_DIV);
+  for (int64_t lo = 0, wsize = w0; lo < M;
+       lo += wsize, wsize *= 2) {
+    const int64_t hi = std::min(M, lo + wsize);
+    const Stamp w1 = now();
+    wins.push_back(bin_window(in, geo_orig.p, rects.p, order.data(), geo, feat_t.data_ptr<float>(), used_t.data_ptr<uint8_t>(),
+                              lo, hi, alive.data(), nth));
+    const Binning& bw = wins.back();
+    const Stamp w2 = now();
+    std::vector<int64_t> work(T);
+    for (int t = 0; t < T; ++t) work[t] = bw.tile_off[t + 1] - bw.tile_off[t];
+    const std::vector<int32_t> sched = tile_schedule(work);
+    const int64_t Pw = bw.tile_off[T];
+    const int nth_tiles = Pw < MIN_PAIRS_PARALLEL ? 1 : nth;
 #pragma omp parallel num_threads(nth_tiles)
     {
-      TileScratch s(NF);
       int64_t* st = tstats.data() + 8 * omp_get_thread_num();
 #pragma omp for schedule(dynamic, 1)
       for (int k = 0; k < T; ++k) {
         const int tile = sched[k];
+        const int64_t n = work[tile];
+        if (n == 0) continue;
         const TileGeom tg = tile_geom(tile, gx, W, H);
-        const int32_t* list = bins.tile_list.data() + bins.tile_off[tile];
-        const uint32_t* lmask = bins.tile_mask.data() + bins.tile_off[tile];
-        const int64_t n = bins.tile_off[tile + 1] - bins.tile_off[tile];
-        float* Tb = s.f.p;
-        float* accb = s.f.p + TPIX;
-        int32_t* doneb = s.i.p;
-        int32_t* lastb = s.i.p + TPIX;
+        if (len[tile] == 0) tile_begin(tg, NF, view(tile));  // first work for this tile
+        const int32_t* list = bw.tile_list.data() + bw.tile_off[tile];
+        const uint32_t* lmask = bw.tile_mask.data() + bw.tile_off[tile];
 #define SF_FWD(NFT, CNT) \
-  forward_tile<NFT, CNT>(geo, fs, NF, list, lmask, n, tg, W, Tb, doneb, lastb, accb, iout, st)
+  forward_tile<NFT, CNT>(geo, fs, NF, list, lmask, n, len[tile], tg, view(tile), alive[tile], st)
         if (NF == 4) {
           if (count) SF_FWD(4, true); else SF_FWD(4, false);
         } else {
           if (count) SF_FWD(0, true); else SF_FWD(0, false);
         }
 #undef SF_FWD
+      }
+    }
+    for (int t = 0; t < T; ++t) len[t] += work[t];
+    const Stamp w3 = now();
+    bin_w += w2.wall - w1.wall;
+    bin_c += w2.cpu - w1.cpu;
+    ras_w += w3.wall - w2.wall;
+    ras_c += w3.cpu - w2.cpu;
+    ++n_windows;
+  }
+  const Stamp t4 = now();
+  Binning bins = wins.empty() ? Binning::empty(gx, gy) : concat_windows(wins, gx, gy);
+  wins.clear();
+  const int64_t P = bins.tile_off[T];
+  {
+    const ImageOut iout{color_t.data_ptr<float>(), alpha_t.data_ptr<float>(), depth_t.data_ptr<float>(),
+                        Tf_t.data_ptr<float>(), last_t.data_ptr<int32_t>(), background.data_ptr<float>()};
+#pragma omp parallel for schedule(static) num_threads(P < MIN_PAIRS_PARALLEL ? 1 : nth)
+    for (int tile = 0; tile < T; ++tile) {
+      const TileGeom tg = tile_geom(tile, gx, W, H);
+      if (len[tile] > 0) {
+        tile_end(tg, W, NF, view(tile), iout);
+      } else {  // no splat: T = 1
+        tile_end_empty(tg, W, NF, iout);
       }
     }
   }
@@ -818,9 +975,11 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   }
   st[3] = static_cast<double>(P);
   put_ms(st, 4, t2.wall - t1.wall, t2.cpu - t1.cpu);  // sort
-  put_ms(st, 5, (t1.wall - t0.wall) + (t3.wall - t2.wall), (t1.cpu - t0.cpu) + (t3.cpu - t2.cpu));  // pack
-  put_ms(st, 6, t4.wall - t3.wall, t4.cpu - t3.cpu);  // binning
-  put_ms(st, 7, t5.wall - t4.wall, t5.cpu - t4.cpu);  // raster fwd
+  put_ms(st, 5, (t1.wall - t0.wall) + (t3.wall - t2.wall) + (t5.wall - t4.wall),
+         (t1.cpu - t0.cpu) + (t3.cpu - t2.cpu) + (t5.cpu - t4.cpu));  // records, tile state, write-out
+  put_ms(st, 6, bin_w, bin_c);  // records + binning
+  put_ms(st, 7, ras_w, ras_c);  // raster fwd
+  st[16] = static_cast<double>(n_windows);
 
   auto order_t = to_tensor(order, at::kInt);
   return {color_t,
@@ -834,6 +993,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           bins.tile_off.t,
           bins.tile_list.t,
           bins.tile_mask.t,
+          used_t,
           stats_t};
 }
 
@@ -846,7 +1006,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
                                     at::Tensor background, at::Tensor T_final,
                                     at::Tensor last, at::Tensor order, at::Tensor geo_t,
                                     at::Tensor feat_t, at::Tensor tile_off, at::Tensor tile_list,
-                                    at::Tensor tile_mask, at::Tensor stats,
+                                    at::Tensor tile_mask, at::Tensor used, at::Tensor stats,
                                     int64_t n_splats, bool count) {
   check_f32(grad_color, "grad_color", 3);
   check_f32(grad_alpha, "grad_alpha", 2);
@@ -927,11 +1087,12 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   // for any thread count (deterministic, no atomics). Then each splat's row is written into its
   // original position. One output row per splat:
   // [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)]; rows of splats that are not
-  // visible are zero.
-  auto g_all = M < N ? at::zeros({N, R}, at::kFloat) : at::empty({N, R}, at::kFloat);
+  // visible or were never binned are zero.
+  auto g_all = at::zeros({N, R}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* ord = order.data_ptr<int32_t>();
+    const uint8_t* usedp = used.data_ptr<uint8_t>();
     float* og = g_all.data_ptr<float>();
     const float* recp = rec.get();
     std::unique_ptr<float[]> sums(new float[static_cast<size_t>(std::max<int64_t>(M, 1)) * R]);
@@ -941,7 +1102,8 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
       const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
       float* sm = sums.get();
-      std::fill(sm + lo * R, sm + hi * R, 0.0f);
+      for (int64_t i = lo; i < hi; ++i)
+        if (usedp[i]) std::fill(sm + i * R, sm + (i + 1) * R, 0.0f);
       for (int tile = 0; tile < T; ++tile) {
         const int64_t s0 = toff[tile], s1 = toff[tile] + nproc[tile];  // processed slots
         for (int64_t slot = s0; slot < s1; ++slot) {
@@ -953,6 +1115,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
         }
       }
       for (int64_t i = lo; i < hi; ++i) {
+        if (!usedp[i]) continue;  // never binned: no record, zero gradient
         const float* sum = sm + i * R;
         const Geo& g = gp[i];
         float* o = og + static_cast<int64_t>(ord[i]) * R;
