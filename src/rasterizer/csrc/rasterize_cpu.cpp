@@ -104,6 +104,29 @@ struct AlignedBuf {
   AlignedBuf& operator=(const AlignedBuf&) = delete;
 };
 
+// Grow-only scratch buffer kept per calling thread across calls: the per-splat buffers of every
+// render are this large, and fresh allocations of that size cost a page fault per 4 KiB on each
+// call. Holds at most the largest request so far (never shrinks while the thread lives).
+template <typename T>
+struct Scratch {
+  T* p = nullptr;
+  size_t cap = 0;
+  T* get(size_t n) {
+    if (n > cap) {
+      std::free(p);
+      cap = std::max<size_t>(n, 1);
+      const size_t bytes = ((cap * sizeof(T) + 63) / 64) * 64;
+      p = static_cast<T*>(std::aligned_alloc(64, bytes));
+      TORCH_CHECK(p != nullptr, "rasterize_cpu: out of memory");
+    }
+    return p;
+  }
+  Scratch() = default;
+  Scratch(const Scratch&) = delete;
+  Scratch& operator=(const Scratch&) = delete;
+  ~Scratch() { std::free(p); }
+};
+
 // Prevents -ffast-math reassociation: forces the value through memory.
 inline float opaque(float x) {
   asm volatile("" : "+m"(x));
@@ -387,11 +410,12 @@ struct SplatInputs {
 // half-rows that are still compositing (alive[tile]; a half-row whose 8 pixels have all terminated
 // never composites a later splat); pairs with an empty mask are dropped (exact: no pixel there can
 // reach alpha >= 1/255 or take part). Stable counting sort by tile: tile lists stay in depth order.
-// Only splats whose rect meets a live tile are gathered into depth order (geo[i] = geo_orig[s],
-// feat[i], used[i] = 1); the others are skipped (used[i] = 0) after reading their rect only.
+// Only splats with at least one pair get a record: appended in depth order at geo[n_rec...]
+// (= geo_orig[s]), feat, src (= s, the original index); tile lists hold record indices. Returns
+// the binning; n_rec is advanced.
 Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* rects, const int32_t* order,
-                   Geo* geo, float* feat, uint8_t* used, int64_t lo_w, int64_t hi_w, const uint32_t* alive,
-                   int nth) {
+                   Geo* geo, float* feat, int32_t* src, int64_t& n_rec, int64_t lo_w, int64_t hi_w,
+                   const uint32_t* alive, int nth) {
   const int gx = in.gx, gy = in.gy, NF = in.C + 1;
   Binning b;
   b.gx = gx;
@@ -402,8 +426,10 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 4096 + 1)));
   // per (chunk, tile): the chunk's pair count, then (below) its first slot in that tile's list
   std::vector<int64_t> cursor(static_cast<size_t>(nth) * T, 0);
-  // per thread: the (tile, mask) pairs with a non-empty mask of its splat chunk, in order
+  // per chunk: the (record, tile, mask) pairs (record index local to the chunk) and the original
+  // indices of its records, in depth order
   std::vector<std::vector<TileMask>> found(nth);
+  std::vector<std::vector<int32_t>> recs(nth);
   // pass 1: masks and per-(chunk, tile) counts over nth contiguous splat chunks (a loop over the
   // chunks, so every chunk runs whatever team size OpenMP grants)
 #pragma omp parallel for num_threads(nth) schedule(static, 1)
@@ -413,20 +439,22 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
     // lines between threads: measured 2-4x slower)
     std::vector<int64_t> h(T, 0);
     std::vector<TileMask> fd;
-    fd.reserve(static_cast<size_t>((hi - lo) * 2));
+    std::vector<int32_t> rc_src;
+    fd.reserve(static_cast<size_t>(hi - lo));
+    rc_src.reserve(static_cast<size_t>(hi - lo));
     for (int64_t i = lo; i < hi; ++i) {
       if (i + 2 * PREFETCH < hi) __builtin_prefetch(rects + 4 * order[i + 2 * PREFETCH]);
       if (i + PREFETCH < hi) __builtin_prefetch(geo_orig + order[i + PREFETCH]);
-      const int64_t s = order[i];
-      const int16_t* r4 = rects + 4 * s;
+      const int32_t s = order[i];
+      const int16_t* r4 = rects + 4 * static_cast<int64_t>(s);
       const Rect rc = {r4[0], r4[1], r4[2], r4[3]};
       uint32_t any = 0;
       for (int ty = rc.y0; ty < rc.y1; ++ty)
         for (int tx = rc.x0; tx < rc.x1; ++tx) any |= alive[ty * gx + tx];
-      used[i] = any != 0;
       if (!any) continue;  // every tile of the rect has terminated
-      const Geo& g = geo[i] = geo_orig[s];
-      if (NF != 4) in.features(s, feat + i * NF);
+      const Geo& g = geo_orig[s];
+      const int32_t local = static_cast<int32_t>(rc_src.size());
+      const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
         const uint32_t* arow = alive + ty * gx;
         uint32_t anyr = 0;
@@ -437,14 +465,34 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
           const uint32_t m = arow[tx] ? span_mask(sp, static_cast<float>(tx * TILE)) & arow[tx] : 0u;
           if (m) {
             const int tile = ty * gx + tx;
-            fd.push_back({static_cast<int32_t>(i), tile, m});
+            fd.push_back({local, tile, m});
             h[tile]++;
           }
         }
       }
+      if (fd.size() > before) rc_src.push_back(s);
     }
     std::copy(h.begin(), h.end(), cursor.begin() + static_cast<ptrdiff_t>(t) * T);
     found[t] = std::move(fd);
+    recs[t] = std::move(rc_src);
+  }
+  // records: chunks in order (= depth order)
+  std::vector<int64_t> base(nth);
+  for (int t = 0; t < nth; ++t) {
+    base[t] = n_rec;
+    n_rec += static_cast<int64_t>(recs[t].size());
+  }
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+  for (int t = 0; t < nth; ++t) {
+    const std::vector<int32_t>& rs = recs[t];
+    const int64_t n = static_cast<int64_t>(rs.size());
+    for (int64_t k = 0; k < n; ++k) {
+      if (k + PREFETCH < n) __builtin_prefetch(geo_orig + rs[k + PREFETCH]);
+      const int64_t r = base[t] + k;
+      geo[r] = geo_orig[rs[k]];
+      src[r] = rs[k];
+      if (NF != 4) in.features(rs[k], feat + r * NF);
+    }
   }
   // offsets: tiles in order, threads (= depth chunks) in order inside a tile -> stable
   b.tile_off.assign(T + 1, 0);
@@ -469,9 +517,10 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
                              cursor.begin() + static_cast<ptrdiff_t>(t + 1) * T);
     int32_t* __restrict tl = b.tile_list.p;
     uint32_t* __restrict tm = b.tile_mask.p;
+    const int32_t rb = static_cast<int32_t>(base[t]);
     for (const TileMask& fd : found[t]) {
       const int64_t slot = cur[fd.tile]++;
-      tl[slot] = fd.splat;
+      tl[slot] = rb + fd.splat;
       tm[slot] = fd.mask;
     }
   }
@@ -809,10 +858,10 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //       window, each next one twice as many; <= 0: max(WINDOW_MIN, M / WINDOW_FIRST_DIV)).
 // Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
-//          last contributor, -1 if none), then the state for the backward: order [M] int32,
-//          geo [M,16], feat_sorted [M,NF], tile_off [T+1] int64, tile_list [P] int32,
-//          tile_mask [P] int32, used [M] uint8 (1: the splat has a record in geo/feat_sorted; 0:
-//          it was never binned, its rows there are unset), and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
+//          last contributor, -1 if none), then the state for the backward: src [U] int32 (original
+//          index of each of the U binned splats' records, depth order), geo [U,16], feat_sorted
+//          [U,NF] (or [0,NF] when NF == 4: features ride in geo), tile_off [T+1] int64, tile_list
+//          [P] int32 (record indices), tile_mask [P] int32, and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
 //          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd,
 //          raster bwd, bwd reduction, then the process CPU times of the same six stages, then the
 //          number of depth windows.
@@ -854,11 +903,13 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
                  C, gx, gy, cull};
   // per-splat records and tile rects in the original order (a sequential pass over the inputs;
   // gathering a splat's record later costs one random line instead of five)
-  AlignedBuf<Geo> geo_orig(static_cast<size_t>(std::max<int64_t>(N, 1)));
-  AlignedBuf<int16_t> rects(static_cast<size_t>(std::max<int64_t>(N, 1)) * 4);
+  thread_local Scratch<Geo> geo_scratch;
+  thread_local Scratch<int16_t> rect_scratch;
+  Geo* geo_orig = geo_scratch.get(static_cast<size_t>(N));                // [N] records
+  int16_t* rects = rect_scratch.get(static_cast<size_t>(N) * 4);          // [N, 4] tile rects
   {
     const bool* vis = visible.data_ptr<bool>();
-    int16_t* r4 = rects.p;
+    int16_t* r4 = rects;
     at::parallel_for(0, N, 16384, [&](int64_t lo, int64_t hi) {
       for (int64_t s = lo; s < hi; ++s) {
         const Rect rc = vis[s] ? in.rect(s) : Rect{0, 0, 0, 0};
@@ -866,7 +917,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
         r4[4 * s + 1] = static_cast<int16_t>(rc.y0);
         r4[4 * s + 2] = static_cast<int16_t>(rc.x1);
         r4[4 * s + 3] = static_cast<int16_t>(rc.y1);
-        if (vis[s]) geo_orig.p[s] = in.geo(s, rc);
+        if (vis[s]) geo_orig[s] = in.geo(s, rc);
       }
     });
   }
@@ -884,7 +935,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto Tf_t = at::empty({H, W}, at::kFloat);
   auto last_t = at::empty({H, W}, at::kInt);
   auto stats_t = at::zeros({NSTATS}, at::kDouble);
-  auto used_t = at::empty({M}, at::kByte);  // per depth index: has a record (geo, feat) and may blend
+  auto src_t = at::empty({M}, at::kInt);  // per record: original splat index
+  int64_t n_rec = 0;                       // records so far (rows of geo_t, feat_t, src_t)
   const int T = gx * gy;
   // per-tile compositing state (O(pixels)), kept across the depth windows
   AlignedBuf<float> s_T(static_cast<size_t>(T) * TPIX), s_acc(static_cast<size_t>(T) * NF * TPIX);
@@ -911,8 +963,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
        lo += wsize, wsize *= 2) {
     const int64_t hi = std::min(M, lo + wsize);
     const Stamp w1 = now();
-    wins.push_back(bin_window(in, geo_orig.p, rects.p, order.data(), geo, feat_t.data_ptr<float>(), used_t.data_ptr<uint8_t>(),
-                              lo, hi, alive.data(), nth));
+    wins.push_back(bin_window(in, geo_orig, rects, order.data(), geo, feat_t.data_ptr<float>(),
+                              src_t.data_ptr<int32_t>(), n_rec, lo, hi, alive.data(), nth));
     const Binning& bw = wins.back();
     const Stamp w2 = now();
     std::vector<int64_t> work(T);
@@ -981,19 +1033,17 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   put_ms(st, 7, ras_w, ras_c);  // raster fwd
   st[16] = static_cast<double>(n_windows);
 
-  auto order_t = to_tensor(order, at::kInt);
   return {color_t,
           alpha_t,
           depth_t,
           Tf_t,
           last_t,
-          order_t,
-          geo_t,
-          feat_t,
+          src_t.narrow(0, 0, n_rec),
+          geo_t.narrow(0, 0, n_rec),
+          NF == 4 ? feat_t : feat_t.narrow(0, 0, n_rec),
           bins.tile_off.t,
           bins.tile_list.t,
           bins.tile_mask.t,
-          used_t,
           stats_t};
 }
 
@@ -1004,9 +1054,9 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 // Writes the evaluated backward vectors and the times into stats[2], stats[8], stats[9].
 std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, at::Tensor grad_depth,
                                     at::Tensor background, at::Tensor T_final,
-                                    at::Tensor last, at::Tensor order, at::Tensor geo_t,
+                                    at::Tensor last, at::Tensor src, at::Tensor geo_t,
                                     at::Tensor feat_t, at::Tensor tile_off, at::Tensor tile_list,
-                                    at::Tensor tile_mask, at::Tensor used, at::Tensor stats,
+                                    at::Tensor tile_mask, at::Tensor stats,
                                     int64_t n_splats, bool count) {
   check_f32(grad_color, "grad_color", 3);
   check_f32(grad_alpha, "grad_alpha", 2);
@@ -1020,7 +1070,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   TORCH_CHECK(grad_alpha.size(0) == H && grad_alpha.size(1) == W, "rasterize_cpu: grad_alpha shape mismatch");
   TORCH_CHECK(grad_depth.size(0) == H && grad_depth.size(1) == W, "rasterize_cpu: grad_depth shape mismatch");
   TORCH_CHECK(background.size(0) == NF - 1, "rasterize_cpu: background shape mismatch");
-  const int64_t N = n_splats, M = order.size(0);
+  const int64_t N = n_splats, M = src.size(0);  // M records
   const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
   const int T = gx * gy;
   const int nth = num_threads();
@@ -1081,50 +1131,44 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     }
   }
   const Stamp t1 = now();
-  // Per-splat reduction over its tiles in a fixed (tile) order: each thread owns a range of splats
-  // (depth order) and walks the processed slots of all tiles in tile order (sequential reads),
-  // accumulating the records of its own splats; every splat's sum is thus taken in the same order
-  // for any thread count (deterministic, no atomics). Then each splat's row is written into its
-  // original position. One output row per splat:
+  // Per-splat reduction over its tiles in a fixed (tile) order: each thread owns a range of
+  // records (depth order) and walks the processed slots of all tiles in tile order (sequential
+  // reads), accumulating its own splats' slot records into their output rows (original order);
+  // every splat's sum is thus taken in the same order for any thread count (deterministic, no
+  // atomics). Then the sums are mapped to the gradients in place. One output row per splat:
   // [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)]; rows of splats that are not
   // visible or were never binned are zero.
   auto g_all = at::zeros({N, R}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
-    const int32_t* ord = order.data_ptr<int32_t>();
-    const uint8_t* usedp = used.data_ptr<uint8_t>();
+    const int32_t* srcp = src.data_ptr<int32_t>();
     float* og = g_all.data_ptr<float>();
     const float* recp = rec.get();
-    std::unique_ptr<float[]> sums(new float[static_cast<size_t>(std::max<int64_t>(M, 1)) * R]);
     const int nth_red = P < MIN_PAIRS_PARALLEL ? 1 : nth;
 #pragma omp parallel num_threads(nth_red)
     {
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
       const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
-      float* sm = sums.get();
-      for (int64_t i = lo; i < hi; ++i)
-        if (usedp[i]) std::fill(sm + i * R, sm + (i + 1) * R, 0.0f);
+      // partial sums accumulate in the splat's (zeroed) output row, then are mapped in place
       for (int tile = 0; tile < T; ++tile) {
         const int64_t s0 = toff[tile], s1 = toff[tile] + nproc[tile];  // processed slots
         for (int64_t slot = s0; slot < s1; ++slot) {
           const int64_t i = tl[slot];
           if (i < lo || i >= hi) continue;
           const float* r = recp + slot * R;
-          float* d = sm + i * R;
+          float* d = og + static_cast<int64_t>(srcp[i]) * R;
           for (int q = 0; q < R; ++q) d[q] += r[q];
         }
       }
       for (int64_t i = lo; i < hi; ++i) {
-        if (!usedp[i]) continue;  // never binned: no record, zero gradient
-        const float* sum = sm + i * R;
         const Geo& g = gp[i];
-        float* o = og + static_cast<int64_t>(ord[i]) * R;
-        o[0] = g.a * sum[0] + g.b * sum[1];
-        o[1] = g.b * sum[0] + g.c * sum[1];
-        o[2] = -0.5f * sum[2];
-        o[3] = -sum[3];
-        o[4] = -0.5f * sum[4];
-        for (int q = 5; q < R; ++q) o[q] = sum[q];
+        float* o = og + static_cast<int64_t>(srcp[i]) * R;
+        const float s0 = o[0], s1 = o[1];
+        o[0] = g.a * s0 + g.b * s1;
+        o[1] = g.b * s0 + g.c * s1;
+        o[2] = -0.5f * o[2];
+        o[3] = -o[3];
+        o[4] = -0.5f * o[4];
       }
     }
   }
