@@ -128,10 +128,11 @@ class CpuRasterizer(Rasterizer):
         projection: ``"fused"`` (default): the compiled projection with its hand-written backward;
             ``"torch"``: the elementwise torch-autograd projection (same forward bit for bit,
             gradients equal up to float rounding; for comparisons and benchmarks).
-        first_window: splats in the first depth window of the forward (each next window holds
-            twice as many); 0 (default): max(16384, visible splats / 16). The windows never change
-            the result (bit-identical to one window, tested); a value >= the number of splats
-            gives the plain single binning (tests, benchmarks).
+        first_window: splats in the first depth window of the forward, each next window holding
+            twice as many; 0 (default): max(16384, visible splats / 16), and all the remaining
+            splats at once when after a window fewer than 1/8 of the image's half-rows have
+            terminated. The windows never change the result (bit-identical to one window,
+            tested); a value >= the number of splats gives the plain single binning.
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with

@@ -72,9 +72,12 @@ constexpr float T_MIN = 1e-4f;
 constexpr int PREFETCH = 8;  // splats ahead in a tile list
 constexpr int64_t MIN_PAIRS_PARALLEL = 16384;  // fewer (splat, tile) pairs: one thread (~1 ms of work)
 // Depth windows of the forward: the first holds max(WINDOW_MIN, M / WINDOW_FIRST_DIV) splats, each
-// next one twice as many (at most ~log2(WINDOW_FIRST_DIV) + 1 windows).
+// next one twice as many (at most ~log2(WINDOW_FIRST_DIV) + 1 windows) ...
 constexpr int64_t WINDOW_MIN = 16384;
 constexpr int64_t WINDOW_FIRST_DIV = 16;
+// ... unless fewer than 1 / WINDOW_DEAD_DIV of the image's half-rows have terminated after a window:
+// then the rest is binned in one window.
+constexpr int64_t WINDOW_DEAD_DIV = 8;
 constexpr int NSTATS = 17;  // see forward()
 
 // Packed per-splat record (depth-sorted order), one cache line.
@@ -410,12 +413,11 @@ struct SplatInputs {
 // half-rows that are still compositing (alive[tile]; a half-row whose 8 pixels have all terminated
 // never composites a later splat); pairs with an empty mask are dropped (exact: no pixel there can
 // reach alpha >= 1/255 or take part). Stable counting sort by tile: tile lists stay in depth order.
-// Only splats with at least one pair get a record: appended in depth order at geo[n_rec...]
-// (= geo_orig[s]), feat, src (= s, the original index); tile lists hold record indices. Returns
-// the binning; n_rec is advanced.
-Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* rects, const int32_t* order,
-                   Geo* geo, float* feat, int32_t* src, int64_t& n_rec, int64_t lo_w, int64_t hi_w,
-                   const uint32_t* alive, int nth) {
+// Records: a splat (depth index i) with at least one pair gets geo[i] = geo_orig[order[i]] (one
+// random line read per splat, nothing else), feat[i] and src[i] = order[i] (its original index);
+// the others src[i] = -1 (row unused, never in a tile list). Tile lists hold depth indices.
+Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* order, Geo* geo, float* feat,
+                   int32_t* src, int64_t lo_w, int64_t hi_w, const uint32_t* alive, int nth) {
   const int gx = in.gx, gy = in.gy, NF = in.C + 1;
   Binning b;
   b.gx = gx;
@@ -426,10 +428,8 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, M / 4096 + 1)));
   // per (chunk, tile): the chunk's pair count, then (below) its first slot in that tile's list
   std::vector<int64_t> cursor(static_cast<size_t>(nth) * T, 0);
-  // per chunk: the (record, tile, mask) pairs (record index local to the chunk) and the original
-  // indices of its records, in depth order
+  // per chunk: the (depth index, tile, mask) pairs, in depth order
   std::vector<std::vector<TileMask>> found(nth);
-  std::vector<std::vector<int32_t>> recs(nth);
   // pass 1: masks and per-(chunk, tile) counts over nth contiguous splat chunks (a loop over the
   // chunks, so every chunk runs whatever team size OpenMP grants)
 #pragma omp parallel for num_threads(nth) schedule(static, 1)
@@ -439,21 +439,17 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
     // lines between threads: measured 2-4x slower)
     std::vector<int64_t> h(T, 0);
     std::vector<TileMask> fd;
-    std::vector<int32_t> rc_src;
     fd.reserve(static_cast<size_t>(hi - lo));
-    rc_src.reserve(static_cast<size_t>(hi - lo));
     for (int64_t i = lo; i < hi; ++i) {
-      if (i + 2 * PREFETCH < hi) __builtin_prefetch(rects + 4 * order[i + 2 * PREFETCH]);
       if (i + PREFETCH < hi) __builtin_prefetch(geo_orig + order[i + PREFETCH]);
       const int32_t s = order[i];
-      const int16_t* r4 = rects + 4 * static_cast<int64_t>(s);
-      const Rect rc = {r4[0], r4[1], r4[2], r4[3]};
+      const Geo& g = geo_orig[s];
+      const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
       uint32_t any = 0;
       for (int ty = rc.y0; ty < rc.y1; ++ty)
         for (int tx = rc.x0; tx < rc.x1; ++tx) any |= alive[ty * gx + tx];
+      src[i] = -1;
       if (!any) continue;  // every tile of the rect has terminated
-      const Geo& g = geo_orig[s];
-      const int32_t local = static_cast<int32_t>(rc_src.size());
       const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
         const uint32_t* arow = alive + ty * gx;
@@ -465,34 +461,19 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
           const uint32_t m = arow[tx] ? span_mask(sp, static_cast<float>(tx * TILE)) & arow[tx] : 0u;
           if (m) {
             const int tile = ty * gx + tx;
-            fd.push_back({local, tile, m});
+            fd.push_back({static_cast<int32_t>(i), tile, m});
             h[tile]++;
           }
         }
       }
-      if (fd.size() > before) rc_src.push_back(s);
+      if (fd.size() > before) {
+        geo[i] = g;
+        src[i] = s;
+        if (NF != 4) in.features(s, feat + i * NF);
+      }
     }
     std::copy(h.begin(), h.end(), cursor.begin() + static_cast<ptrdiff_t>(t) * T);
     found[t] = std::move(fd);
-    recs[t] = std::move(rc_src);
-  }
-  // records: chunks in order (= depth order)
-  std::vector<int64_t> base(nth);
-  for (int t = 0; t < nth; ++t) {
-    base[t] = n_rec;
-    n_rec += static_cast<int64_t>(recs[t].size());
-  }
-#pragma omp parallel for num_threads(nth) schedule(static, 1)
-  for (int t = 0; t < nth; ++t) {
-    const std::vector<int32_t>& rs = recs[t];
-    const int64_t n = static_cast<int64_t>(rs.size());
-    for (int64_t k = 0; k < n; ++k) {
-      if (k + PREFETCH < n) __builtin_prefetch(geo_orig + rs[k + PREFETCH]);
-      const int64_t r = base[t] + k;
-      geo[r] = geo_orig[rs[k]];
-      src[r] = rs[k];
-      if (NF != 4) in.features(rs[k], feat + r * NF);
-    }
   }
   // offsets: tiles in order, threads (= depth chunks) in order inside a tile -> stable
   b.tile_off.assign(T + 1, 0);
@@ -517,10 +498,9 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int16_t* re
                              cursor.begin() + static_cast<ptrdiff_t>(t + 1) * T);
     int32_t* __restrict tl = b.tile_list.p;
     uint32_t* __restrict tm = b.tile_mask.p;
-    const int32_t rb = static_cast<int32_t>(base[t]);
     for (const TileMask& fd : found[t]) {
       const int64_t slot = cur[fd.tile]++;
-      tl[slot] = rb + fd.splat;
+      tl[slot] = fd.splat;
       tm[slot] = fd.mask;
     }
   }
@@ -858,10 +838,11 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 //       window, each next one twice as many; <= 0: max(WINDOW_MIN, M / WINDOW_FIRST_DIV)).
 // Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
-//          last contributor, -1 if none), then the state for the backward: src [U] int32 (original
-//          index of each of the U binned splats' records, depth order), geo [U,16], feat_sorted
-//          [U,NF] (or [0,NF] when NF == 4: features ride in geo), tile_off [T+1] int64, tile_list
-//          [P] int32 (record indices), tile_mask [P] int32, and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
+//          last contributor, -1 if none), then the state for the backward: src [M] int32 (per
+//          depth index: the original index of a binned splat, -1 for a splat never binned, whose
+//          rows of geo and feat are unset), geo [M,16], feat_sorted [M,NF] (or [0,NF] when NF == 4:
+//          features ride in geo), tile_off [T+1] int64, tile_list [P] int32 (depth indices),
+//          tile_mask [P] int32, and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
 //          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd,
 //          raster bwd, bwd reduction, then the process CPU times of the same six stages, then the
 //          number of depth windows.
@@ -901,24 +882,15 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   SplatInputs in{means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
                  colors.data_ptr<float>(), depths.data_ptr<float>(), radii.data_ptr<int32_t>(),
                  C, gx, gy, cull};
-  // per-splat records and tile rects in the original order (a sequential pass over the inputs;
-  // gathering a splat's record later costs one random line instead of five)
+  // per-splat records (with their tile rects) in the original order: a sequential pass over the
+  // inputs; binning then reads one random line per splat instead of five
   thread_local Scratch<Geo> geo_scratch;
-  thread_local Scratch<int16_t> rect_scratch;
-  Geo* geo_orig = geo_scratch.get(static_cast<size_t>(N));                // [N] records
-  int16_t* rects = rect_scratch.get(static_cast<size_t>(N) * 4);          // [N, 4] tile rects
+  Geo* geo_orig = geo_scratch.get(static_cast<size_t>(N));  // [N] records (visible splats only)
   {
     const bool* vis = visible.data_ptr<bool>();
-    int16_t* r4 = rects;
     at::parallel_for(0, N, 16384, [&](int64_t lo, int64_t hi) {
-      for (int64_t s = lo; s < hi; ++s) {
-        const Rect rc = vis[s] ? in.rect(s) : Rect{0, 0, 0, 0};
-        r4[4 * s] = static_cast<int16_t>(rc.x0);
-        r4[4 * s + 1] = static_cast<int16_t>(rc.y0);
-        r4[4 * s + 2] = static_cast<int16_t>(rc.x1);
-        r4[4 * s + 3] = static_cast<int16_t>(rc.y1);
-        if (vis[s]) geo_orig[s] = in.geo(s, rc);
-      }
+      for (int64_t s = lo; s < hi; ++s)
+        if (vis[s]) geo_orig[s] = in.geo(s, in.rect(s));
     });
   }
   const Stamp t1 = now();
@@ -935,8 +907,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto Tf_t = at::empty({H, W}, at::kFloat);
   auto last_t = at::empty({H, W}, at::kInt);
   auto stats_t = at::zeros({NSTATS}, at::kDouble);
-  auto src_t = at::empty({M}, at::kInt);  // per record: original splat index
-  int64_t n_rec = 0;                       // records so far (rows of geo_t, feat_t, src_t)
+  auto src_t = at::empty({M}, at::kInt);  // per depth index: original splat index, -1 if not binned
   const int T = gx * gy;
   // per-tile compositing state (O(pixels)), kept across the depth windows
   AlignedBuf<float> s_T(static_cast<size_t>(T) * TPIX), s_acc(static_cast<size_t>(T) * NF * TPIX);
@@ -959,12 +930,14 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   int64_t n_windows = 0;
   const float* fs = feat_t.data_ptr<float>();
   const int64_t w0 = first_window > 0 ? first_window : std::max<int64_t>(WINDOW_MIN, M / WINDOW_FIRST_DIV);
-  for (int64_t lo = 0, wsize = w0; lo < M;
-       lo += wsize, wsize *= 2) {
-    const int64_t hi = std::min(M, lo + wsize);
+  int64_t all_rows = 0;  // half-rows of the image
+  for (int t = 0; t < T; ++t) all_rows += __builtin_popcount(alive[t]);
+  int64_t wsize = w0;
+  for (int64_t lo = 0, hi = 0; lo < M; lo = hi) {
+    hi = std::min(M, lo + wsize);
     const Stamp w1 = now();
-    wins.push_back(bin_window(in, geo_orig, rects, order.data(), geo, feat_t.data_ptr<float>(),
-                              src_t.data_ptr<int32_t>(), n_rec, lo, hi, alive.data(), nth));
+    wins.push_back(bin_window(in, geo_orig, order.data(), geo, feat_t.data_ptr<float>(),
+                              src_t.data_ptr<int32_t>(), lo, hi, alive.data(), nth));
     const Binning& bw = wins.back();
     const Stamp w2 = now();
     std::vector<int64_t> work(T);
@@ -995,6 +968,12 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
       }
     }
     for (int t = 0; t < T; ++t) len[t] += work[t];
+    // next window: twice as large, or all the rest when too few half-rows have terminated for
+    // later windows to skip enough work to pay for themselves (scenes that never saturate)
+    int64_t live_rows = 0;
+    for (int t = 0; t < T; ++t) live_rows += __builtin_popcount(alive[t]);
+    const bool few_dead = (all_rows - live_rows) * WINDOW_DEAD_DIV < all_rows;
+    wsize = (few_dead && first_window <= 0) ? M - hi : 2 * wsize;
     const Stamp w3 = now();
     bin_w += w2.wall - w1.wall;
     bin_c += w2.cpu - w1.cpu;
@@ -1038,9 +1017,9 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           depth_t,
           Tf_t,
           last_t,
-          src_t.narrow(0, 0, n_rec),
-          geo_t.narrow(0, 0, n_rec),
-          NF == 4 ? feat_t : feat_t.narrow(0, 0, n_rec),
+          src_t,
+          geo_t,
+          feat_t,
           bins.tile_off.t,
           bins.tile_list.t,
           bins.tile_mask.t,
@@ -1161,6 +1140,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
         }
       }
       for (int64_t i = lo; i < hi; ++i) {
+        if (srcp[i] < 0) continue;  // unused row (the splat was never binned)
         const Geo& g = gp[i];
         float* o = og + static_cast<int64_t>(srcp[i]) * R;
         const float s0 = o[0], s1 = o[1];
