@@ -275,6 +275,23 @@ def test_depth_windows_are_exact(channels: int):
             assert torch.equal(g[k], plain[1][k]), (fw, k)
 
 
+def test_depth_windows_non_saturating_scene_bins_the_rest_at_once():
+    """Where almost no pixel terminates (small, faint splats), the default rule bins everything
+    after the first window at once (2 windows) and the result is still that of one window."""
+    splats = random_scene(40000, seed=8, scale_range=(0.002, 0.01))
+    splats.opacities = torch.full_like(splats.opacities, -3.0)  # logit: alpha <= 0.05
+    cam = random_camera(64, 48, seed=8)
+    bg = torch.tensor([0.5, 0.5, 0.5])
+    r = CpuRasterizer(count_pairs=True)
+    out, g = _render_with_grads(r, splats, cam, bg)
+    assert r.last_stats["depth_windows"] == 2
+    plain_out, plain_g = _render_with_grads(CpuRasterizer(first_window=10**9), splats, cam, bg)
+    for name in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(out, name), getattr(plain_out, name)), name
+    for k in ATTRS:
+        assert torch.equal(g[k], plain_g[k]), k
+
+
 def test_pair_statistics():
     splats = random_scene(800, seed=2)
     cam = random_camera(40, 40, seed=2)

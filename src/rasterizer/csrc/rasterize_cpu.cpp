@@ -356,8 +356,9 @@ struct SplatInputs {
 
   Rect rect(int64_t s) const { return tile_rect(m2[2 * s], m2[2 * s + 1], rad[s], gx, gy); }
 
-  // Packed record of splat s with tile rect rc (cull threshold, ellipse half-height, features).
-  Geo geo(int64_t s, const Rect& rc) const {
+  // Raw record of splat s with tile rect rc: mean, conic, opacity, rect, features; the derived
+  // fields are filled in by finish() for splats that reach a tile still compositing.
+  Geo raw(int64_t s, const Rect& rc) const {
     Geo g;
     g.mx = m2[2 * s];
     g.my = m2[2 * s + 1];
@@ -365,6 +366,22 @@ struct SplatInputs {
     g.b = cn[3 * s + 1];
     g.c = cn[3 * s + 2];
     g.o = op[s];
+    g.rect[0] = static_cast<int16_t>(rc.x0);
+    g.rect[1] = static_cast<int16_t>(rc.y0);
+    g.rect[2] = static_cast<int16_t>(rc.x1);
+    g.rect[3] = static_cast<int16_t>(rc.y1);
+    if (C == 3) {
+      for (int c2 = 0; c2 < 3; ++c2) g.f[c2] = col[s * 3 + c2];
+      g.f[3] = dep[s];
+    } else {
+      for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = 0.0f;
+    }
+    return g;
+  }
+
+  // The derived fields of a raw record: det = a c - b^2, 1/a, the cull threshold thr on
+  // Q = d^T conic d and the cull ellipse's half-height ry.
+  void finish(Geo& g) const {
     const double a = g.a, b = g.b, c = g.c;
     const double det = a * c - b * b;
     g.det = static_cast<float>(det);
@@ -381,16 +398,6 @@ struct SplatInputs {
       const double thr = t * (1.0 + 1e-3 + 1e-5 * kappa) + 1e-3;
       g.thr = thr < 1e30 ? static_cast<float>(thr) : std::numeric_limits<float>::infinity();
     }
-    g.rect[0] = static_cast<int16_t>(rc.x0);
-    g.rect[1] = static_cast<int16_t>(rc.y0);
-    g.rect[2] = static_cast<int16_t>(rc.x1);
-    g.rect[3] = static_cast<int16_t>(rc.y1);
-    if (C == 3) {
-      for (int c2 = 0; c2 < 3; ++c2) g.f[c2] = col[s * 3 + c2];
-      g.f[3] = dep[s];
-    } else {
-      for (int c2 = 0; c2 < 4; ++c2) g.f[c2] = 0.0f;
-    }
     if (std::isinf(g.thr)) {
       g.ry = std::numeric_limits<float>::infinity();
     } else if (g.thr < 0.0f) {
@@ -398,7 +405,6 @@ struct SplatInputs {
     } else {  // max |dy| on Q = thr is sqrt(thr a / det)
       g.ry = static_cast<float>(std::sqrt(static_cast<double>(g.thr) * a / det) * (1.0 + 1e-4) + 1e-3);
     }
-    return g;
   }
 
   // Features [colors, depth] of splat s (when C != 3; else they ride in Geo::f).
@@ -414,7 +420,8 @@ struct SplatInputs {
 // never composites a later splat); pairs with an empty mask are dropped (exact: no pixel there can
 // reach alpha >= 1/255 or take part). Stable counting sort by tile: tile lists stay in depth order.
 // Records: a splat (depth index i) with at least one pair gets geo[i] = geo_orig[order[i]] (one
-// random line read per splat, nothing else), feat[i] and src[i] = order[i] (its original index);
+// random line read per splat, nothing else) with its derived fields (finish(), computed only for
+// splats that reach a live tile), feat[i] and src[i] = order[i] (its original index);
 // the others src[i] = -1 (row unused, never in a tile list). Tile lists hold depth indices.
 Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* order, Geo* geo, float* feat,
                    int32_t* src, int64_t lo_w, int64_t hi_w, const uint32_t* alive, int nth) {
@@ -443,13 +450,14 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* or
     for (int64_t i = lo; i < hi; ++i) {
       if (i + PREFETCH < hi) __builtin_prefetch(geo_orig + order[i + PREFETCH]);
       const int32_t s = order[i];
-      const Geo& g = geo_orig[s];
+      Geo g = geo_orig[s];
       const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
       uint32_t any = 0;
       for (int ty = rc.y0; ty < rc.y1; ++ty)
         for (int tx = rc.x0; tx < rc.x1; ++tx) any |= alive[ty * gx + tx];
       src[i] = -1;
       if (!any) continue;  // every tile of the rect has terminated
+      in.finish(g);
       const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
         const uint32_t* arow = alive + ty * gx;
@@ -882,15 +890,15 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   SplatInputs in{means2d.data_ptr<float>(), conics.data_ptr<float>(), opacities.data_ptr<float>(),
                  colors.data_ptr<float>(), depths.data_ptr<float>(), radii.data_ptr<int32_t>(),
                  C, gx, gy, cull};
-  // per-splat records (with their tile rects) in the original order: a sequential pass over the
-  // inputs; binning then reads one random line per splat instead of five
+  // raw per-splat records (with their tile rects) in the original order: a sequential pass over
+  // the inputs; binning then reads one random line per splat instead of five
   thread_local Scratch<Geo> geo_scratch;
   Geo* geo_orig = geo_scratch.get(static_cast<size_t>(N));  // [N] records (visible splats only)
   {
     const bool* vis = visible.data_ptr<bool>();
     at::parallel_for(0, N, 16384, [&](int64_t lo, int64_t hi) {
       for (int64_t s = lo; s < hi; ++s)
-        if (vis[s]) geo_orig[s] = in.geo(s, in.rect(s));
+        if (vis[s]) geo_orig[s] = in.raw(s, in.rect(s));
     });
   }
   const Stamp t1 = now();
