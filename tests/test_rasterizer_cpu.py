@@ -313,13 +313,18 @@ def test_fast_exp_relative_error():
     assert rel < 3e-7, rel
 
 
-def test_depth_order_is_stable_argsort():
+@pytest.mark.parametrize("n, threads", [(5000, 1), (70001, 1), (70001, 2)])
+def test_depth_order_is_stable_argsort(n: int, threads: int):
+    """The radix sort equals a stable argsort (any thread count), with ties, invisible splats and a
+    narrow key range (constant high digits)."""
     from src.rasterizer._build import load_extension
 
-    g = torch.Generator().manual_seed(0)
-    d = torch.rand(5000, generator=g) * 3 + 0.3
+    torch.set_num_threads(threads)  # the fixture restores the thread count
+    g = torch.Generator().manual_seed(n)
+    d = torch.rand(n, generator=g) * 3 + 0.3
     d[::7] = d[3]  # ties
-    vis = torch.rand(5000, generator=g) > 0.2
+    d[1::5] = 2.0 + torch.rand(len(d[1::5]), generator=g) * 1e-3  # differ in low digits only
+    vis = torch.rand(n, generator=g) > 0.2
     got = load_extension().depth_order(d, vis)
     idx = torch.nonzero(vis).squeeze(1)
     want = idx[torch.argsort(d[idx], stable=True)]

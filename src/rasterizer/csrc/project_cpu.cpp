@@ -592,52 +592,55 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
 // forward intermediate (finite[i] false; there torch's chain rule yields NaN). Every other splat's
 // gradient is exactly zero, as written by the caller (outputs zero-initialised). Live splats are
 // staged L at a time into contiguous rows, so packs stay full however sparse they are; lanes do
-// not interact, so each splat's result is the same as in a pack of its neighbours.
+// not interact, so each splat's result is the same in any pack (any thread count).
 template <typename T>
 void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, const bool* finite,
                    int64_t N, const GradIn<T>& gi, T* g_means, T* g_quats, T* g_scales) {
   using VT = vec_t<T, 4>;
   using VA = vec_t<double, 4>;
   constexpr int L = 4;
-  std::vector<int64_t> live;
-  live.reserve(static_cast<size_t>(N));
-  for (int64_t i = 0; i < N; ++i) {
-    const T* m2 = gi.m2 + gi.sm2 * i;
-    const T* cn = gi.cn + gi.scn * i;
-    const bool zero = m2[0] == T(0) && m2[1] == T(0) && cn[0] == T(0) && cn[1] == T(0) && cn[2] == T(0) &&
-                      gi.dp[gi.sdp * i] == T(0);
-    if (!(zero && finite[i])) live.push_back(i);
-  }
-  const int64_t nl = static_cast<int64_t>(live.size()), nb = nl / L;
-  const int nt = std::max(1, at::get_num_threads());
-#pragma omp parallel for schedule(static) num_threads(nt) if (nl >= MIN_SPLATS_PARALLEL)
-  for (int64_t b = 0; b < nb; ++b) {
-    T lm[3 * L], lq[4 * L], ls[3 * L], lg2[2 * L], lgc[3 * L], lgd[L], om[3 * L], oq[4 * L], os[3 * L];
-    for (int l = 0; l < L; ++l) {
-      const int64_t i = live[b * L + l];
-      for (int j = 0; j < 3; ++j) {
-        lm[3 * l + j] = means[3 * i + j];
-        ls[3 * l + j] = scales[3 * i + j];
-        lgc[3 * l + j] = gi.cn[gi.scn * i + j];
-      }
-      for (int j = 0; j < 4; ++j) lq[4 * l + j] = quats[4 * i + j];
-      lg2[2 * l] = gi.m2[gi.sm2 * i];
-      lg2[2 * l + 1] = gi.m2[gi.sm2 * i + 1];
-      lgd[l] = gi.dp[gi.sdp * i];
+  const int nt = N >= MIN_SPLATS_PARALLEL ? std::max(1, at::get_num_threads()) : 1;
+  // nt contiguous chunks, each scanned for its live splats and evaluated by one thread
+#pragma omp parallel for schedule(static, 1) num_threads(nt)
+  for (int t = 0; t < nt; ++t) {
+    std::vector<int64_t> live;
+    live.reserve(static_cast<size_t>(N / nt + 1));
+    for (int64_t i = N * t / nt; i < N * (t + 1) / nt; ++i) {
+      const T* m2 = gi.m2 + gi.sm2 * i;
+      const T* cn = gi.cn + gi.scn * i;
+      const bool zero = m2[0] == T(0) && m2[1] == T(0) && cn[0] == T(0) && cn[1] == T(0) &&
+                        cn[2] == T(0) && gi.dp[gi.sdp * i] == T(0);
+      if (!(zero && finite[i])) live.push_back(i);
     }
-    const GradIn<T> gl{lg2, lgc, lgd, 2, 3, 1};
-    backward_pack<VT, VA>(k, 0, lm, lq, ls, gl, om, oq, os);
-    for (int l = 0; l < L; ++l) {
-      const int64_t i = live[b * L + l];
-      for (int j = 0; j < 3; ++j) {
-        g_means[3 * i + j] = om[3 * l + j];
-        g_scales[3 * i + j] = os[3 * l + j];
+    const int64_t nl = static_cast<int64_t>(live.size()), nb = nl / L;
+    for (int64_t b = 0; b < nb; ++b) {
+      T lm[3 * L], lq[4 * L], ls[3 * L], lg2[2 * L], lgc[3 * L], lgd[L], om[3 * L], oq[4 * L], os[3 * L];
+      for (int l = 0; l < L; ++l) {
+        const int64_t i = live[b * L + l];
+        for (int j = 0; j < 3; ++j) {
+          lm[3 * l + j] = means[3 * i + j];
+          ls[3 * l + j] = scales[3 * i + j];
+          lgc[3 * l + j] = gi.cn[gi.scn * i + j];
+        }
+        for (int j = 0; j < 4; ++j) lq[4 * l + j] = quats[4 * i + j];
+        lg2[2 * l] = gi.m2[gi.sm2 * i];
+        lg2[2 * l + 1] = gi.m2[gi.sm2 * i + 1];
+        lgd[l] = gi.dp[gi.sdp * i];
       }
-      for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = oq[4 * l + j];
+      const GradIn<T> gl{lg2, lgc, lgd, 2, 3, 1};
+      backward_pack<VT, VA>(k, 0, lm, lq, ls, gl, om, oq, os);
+      for (int l = 0; l < L; ++l) {
+        const int64_t i = live[b * L + l];
+        for (int j = 0; j < 3; ++j) {
+          g_means[3 * i + j] = om[3 * l + j];
+          g_scales[3 * i + j] = os[3 * l + j];
+        }
+        for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = oq[4 * l + j];
+      }
     }
+    for (int64_t b = nb * L; b < nl; ++b)
+      backward_pack<T, double>(k, live[b], means, quats, scales, gi, g_means, g_quats, g_scales);
   }
-  for (int64_t b = nb * L; b < nl; ++b)
-    backward_pack<T, double>(k, live[b], means, quats, scales, gi, g_means, g_quats, g_scales);
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -1066,7 +1066,8 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   const int64_t P = tile_list.size(0);
   // records [P, R] in slot order: only the slots up to each tile's last contributor are written
   // and read
-  std::unique_ptr<float[]> rec(new float[static_cast<size_t>(std::max<int64_t>(P, 1)) * R]);
+  thread_local Scratch<float> rec_scratch;  // reused across calls (no page faults per render)
+  float* const rec = rec_scratch.get(static_cast<size_t>(P) * R);
   std::vector<int64_t> nproc(T, 0);
   const int64_t* toff = tile_off.data_ptr<int64_t>();
   const int32_t* tl = tile_list.data_ptr<int32_t>();
@@ -1091,7 +1092,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     const float* inT = T_final.data_ptr<float>();
     const ImageGrad gin{grad_color.data_ptr<float>(), grad_alpha.data_ptr<float>(),
                         grad_depth.data_ptr<float>(), background.data_ptr<float>()};
-    float* recp = rec.get();
+    float* recp = rec;
 #pragma omp parallel num_threads(nth_tiles)
     {
       TileScratch s(NF);
@@ -1130,7 +1131,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* srcp = src.data_ptr<int32_t>();
     float* og = g_all.data_ptr<float>();
-    const float* recp = rec.get();
+    const float* recp = rec;
     const int nth_red = P < MIN_PAIRS_PARALLEL ? 1 : nth;
 #pragma omp parallel num_threads(nth_red)
     {
