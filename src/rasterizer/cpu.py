@@ -138,8 +138,9 @@ class CpuRasterizer(Rasterizer):
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
             alpha >= 1/255 before termination), ``eval_fwd``/``eval_bwd`` (evaluated pixel-splat
             pairs, 8 per vector), ``tile_pairs`` (binned (splat, tile) pairs), ``depth_windows``
-            and stage times in ms (``sort_ms``; ``pack_ms``: per-splat records and tile rects,
-            per-tile state, image write-out; ``bin_ms``: gathering and binning per depth window;
+            and stage times in ms (``sort_ms``; ``pack_ms``: raw per-splat records with their tile
+            rects, per-tile state, concatenating the windows' tile lists and writing the images;
+            ``bin_ms``: gathering, cull geometry and binning per depth window;
             ``raster_fwd_ms``, ``raster_bwd_ms``, ``reduce_ms``; wall clock) and the same with
             ``_cpu_ms`` (process CPU time, all threads).
     """

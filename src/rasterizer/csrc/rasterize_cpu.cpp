@@ -54,7 +54,6 @@
 #include <cstring>
 #include <ctime>
 #include <limits>
-#include <memory>
 #include <vector>
 
 #include "simd.h"
@@ -530,6 +529,7 @@ Binning concat_windows(std::vector<Binning>& wins, int gx, int gy) {
     for (const Binning& w : wins) run += w.tile_off[tile + 1] - w.tile_off[tile];
   }
   b.tile_off[T] = run;
+  TORCH_CHECK(run < (int64_t(1) << 31), "rasterize_cpu: too many (splat, tile) pairs: ", run);
   b.tile_list.resize(run);
   b.tile_mask.resize(run);
 #pragma omp parallel for schedule(static) if (run >= MIN_PAIRS_PARALLEL)
