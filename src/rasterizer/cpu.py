@@ -128,17 +128,20 @@ class CpuRasterizer(Rasterizer):
         projection: ``"fused"`` (default): the compiled projection with its hand-written backward;
             ``"torch"``: the elementwise torch-autograd projection (same forward bit for bit,
             gradients equal up to float rounding; for comparisons and benchmarks).
-        first_window: splats in the first depth window of the forward, each next window holding
-            twice as many; 0 (default): max(16384, visible splats / 16), and all the remaining
-            splats at once when after a window fewer than 1/8 of the image's half-rows have
-            terminated. The windows never change the result (bit-identical to one window,
-            tested); a value >= the number of splats gives the plain single binning.
+        first_window: about this many splats, the nearest (below a depth quantile estimated
+            from a sample), form the first depth window of the forward; of the splats behind it
+            only those whose tile rect still meets a tile with live pixels are sorted, and binned
+            in windows of twice as many each; 0 (default): max(16384, visible splats / 16), and all
+            the remaining splats at once when after a window fewer than 1/8 of the image's
+            half-rows have terminated. The windows never change the result (bit-identical to one
+            window, tested); a value >= the number of splats gives the plain single binning.
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
             alpha >= 1/255 before termination), ``eval_fwd``/``eval_bwd`` (evaluated pixel-splat
             pairs, 8 per vector), ``tile_pairs`` (binned (splat, tile) pairs), ``depth_windows``
-            and stage times in ms (``sort_ms``; ``pack_ms``: raw per-splat records with their tile
+            and stage times in ms (``sort_ms``: depth sorts and the scan selecting the splats
+            behind the first window; ``pack_ms``: raw per-splat records with their tile
             rects, per-tile state, concatenating the windows' tile lists and writing the images;
             ``bin_ms``: gathering, cull geometry and binning per depth window;
             ``raster_fwd_ms``, ``raster_bwd_ms``, ``reduce_ms``; wall clock) and the same with

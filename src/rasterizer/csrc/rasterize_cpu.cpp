@@ -12,15 +12,17 @@
 // depth = acc[..., C], computed exactly as torch_ref does (same float32 operations).
 //
 // Pipeline (forward): per-splat records and 3DGS getRect tile rects (float32, bit-identical to
-// torch's tile_rects; original order, sequential) -> stable LSD radix sort of the visible splats by
-// depth -> depth windows of geometrically growing size, each: records of the splats whose rect
-// meets a tile still compositing gathered into depth order (one cache line each), binning (a
-// half-row mask per (splat, tile), restricted to the tile's half-rows still compositing; stable
-// counting sort by tile, O(pairs)) and compositing, with per-tile state carried across windows.
-// Once a tile's pixels have all terminated (T < 1e-4 would be crossed), no later splat is binned
-// onto it: in scenes that saturate, most (splat, tile) pairs behind the opaque front are never
-// stored or visited, by the forward, the backward or the reduction. The result is bit-identical
-// to binning everything at once (tested).
+// torch's tile_rects; original order, sequential) -> the first depth window: the visible splats
+// nearer than a sampled depth quantile, stable LSD radix sort -> binning (a half-row mask per
+// (splat, tile); stable counting sort by tile, O(pairs)) and compositing -> the splats behind it
+// whose rect still meets a tile with a half-row compositing (one sequential scan of the rects),
+// stably sorted -> further windows of geometrically growing size, each: records gathered into
+// depth order (one cache line each), binning restricted to the tiles' half-rows still compositing,
+// compositing, with per-tile state carried across windows. Once a tile's pixels have all
+// terminated (T < 1e-4 would be crossed), no later splat is binned onto it: in scenes that
+// saturate, most splats behind the opaque front are neither sorted, binned nor stored, and their
+// (splat, tile) pairs are visited by neither the forward, the backward nor the reduction. The
+// result is bit-identical to sorting and binning everything at once (tested, with depth ties).
 //
 // Work decomposition: one OpenMP task per 16x16 tile (dynamic schedule, longest lists first).
 // Inside a tile, splats are the outer loop and pixels the inner loop: 32 "half-rows" of 8 pixels,
@@ -70,13 +72,15 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f;
 constexpr float T_MIN = 1e-4f;
 constexpr int PREFETCH = 8;  // splats ahead in a tile list
 constexpr int64_t MIN_PAIRS_PARALLEL = 16384;  // fewer (splat, tile) pairs: one thread (~1 ms of work)
-// Depth windows of the forward: the first holds max(WINDOW_MIN, M / WINDOW_FIRST_DIV) splats, each
-// next one twice as many (at most ~log2(WINDOW_FIRST_DIV) + 1 windows) ...
+// Depth windows of the forward: the first holds ~max(WINDOW_MIN, M / WINDOW_FIRST_DIV) of the M
+// visible splats, each next one twice as many rows (at most ~log2(WINDOW_FIRST_DIV) + 1 windows) ...
 constexpr int64_t WINDOW_MIN = 16384;
 constexpr int64_t WINDOW_FIRST_DIV = 16;
 // ... unless fewer than 1 / WINDOW_DEAD_DIV of the image's half-rows have terminated after a window:
 // then the rest is binned in one window.
 constexpr int64_t WINDOW_DEAD_DIV = 8;
+// The first window is the splats nearer than a depth quantile estimated from ~WINDOW_SAMPLE keys.
+constexpr int64_t WINDOW_SAMPLE = 8192;
 constexpr int NSTATS = 17;  // see forward()
 
 // Packed per-splat record (depth-sorted order), one cache line.
@@ -153,36 +157,34 @@ inline void put_ms(double* st, int k, double wall, double cpu) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Depth order: stable LSD radix sort of positive float depths (bit patterns of positive floats
-// are monotone), equal to torch.argsort(depths[vis], stable=True) mapped back to indices.
-std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n) {
+// Depth order: stable LSD radix sort of the depth keys, equal to torch.argsort(depths[vis],
+// stable=True) mapped back to indices.
+
+// Order-preserving unsigned key of a float depth (IEEE order -> unsigned order; handles
+// negatives too, although visible depths are > 0.2).
+inline uint32_t depth_key(float d) {
+  uint32_t u;
+  std::memcpy(&u, &d, 4);
+  return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+
+// Stable LSD radix sort (8-bit digits) of idx by key; both are permuted. Passes whose digit is the
+// same for every element are skipped.
+void radix_sort(std::vector<uint32_t>& key, std::vector<int32_t>& idx) {
   constexpr int BITS = 8;
   constexpr uint32_t RADIX = 1u << BITS;
   constexpr int PASSES = 32 / BITS;
-  std::vector<int32_t> idx(n);
-  std::vector<uint32_t> key(n);
-  // one pass: compaction of the visible splats, keys and the histograms of all digits
+  const size_t m = key.size();
+  if (m == 0) return;
   std::vector<uint32_t> count(static_cast<size_t>(PASSES) * RADIX, 0u);
-  size_t m = 0;
-  for (int64_t i = 0; i < n; ++i) {
-    if (!visible[i]) continue;
-    uint32_t u;
-    std::memcpy(&u, depth + i, 4);
-    // map IEEE order to unsigned order (handles negatives too, although visible depths are > 0.2)
-    const uint32_t k = (u & 0x80000000u) ? ~u : (u | 0x80000000u);
-    key[m] = k;
-    idx[m] = static_cast<int32_t>(i);
-    ++m;
-    for (int p = 0; p < PASSES; ++p) count[p * RADIX + ((k >> (p * BITS)) & (RADIX - 1))]++;
-  }
-  idx.resize(m);
-  key.resize(m);
+  for (size_t i = 0; i < m; ++i)
+    for (int p = 0; p < PASSES; ++p) count[p * RADIX + ((key[i] >> (p * BITS)) & (RADIX - 1))]++;
   std::vector<uint32_t> key2(m);
   std::vector<int32_t> idx2(m);
   for (int p = 0; p < PASSES; ++p) {
     uint32_t* cnt = count.data() + p * RADIX;
     const int shift = p * BITS;
-    if (m == 0 || cnt[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
+    if (cnt[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
     uint32_t sum = 0;
     for (uint32_t r = 0; r < RADIX; ++r) {
       const uint32_t c = cnt[r];
@@ -206,7 +208,46 @@ std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_
     }
     idx.swap(idx2);
   }
+}
+
+// The visible splats (original indices) whose depth key k satisfies lo <= k < hi, in stable depth
+// order (ties keep the original order). [0, 2^32) selects every visible splat.
+std::vector<int32_t> depth_order_range(const float* depth, const bool* visible, int64_t n, uint64_t lo,
+                                       uint64_t hi) {
+  std::vector<uint32_t> key;
+  std::vector<int32_t> idx;
+  for (int64_t i = 0; i < n; ++i) {
+    if (!visible[i]) continue;
+    const uint32_t k = depth_key(depth[i]);
+    if (k < lo || k >= hi) continue;
+    key.push_back(k);
+    idx.push_back(static_cast<int32_t>(i));
+  }
+  radix_sort(key, idx);
   return idx;
+}
+
+// Stable depth order of the visible splats (original indices).
+std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n) {
+  return depth_order_range(depth, visible, n, 0, uint64_t(1) << 32);
+}
+
+// A depth key below which roughly `target` of the m visible splats lie: the matching quantile of
+// a strided sample of the keys (any value gives the same image; it only sizes the first window),
+// and above the nearest sampled key. Returns 2^32 (every splat) when target >= m.
+uint64_t window_threshold(const float* depth, const bool* visible, int64_t n, int64_t m, int64_t target) {
+  if (target >= m) return uint64_t(1) << 32;
+  const int64_t stride = std::max<int64_t>(1, n / WINDOW_SAMPLE);
+  std::vector<uint32_t> sample;
+  for (int64_t i = 0; i < n; i += stride)
+    if (visible[i]) sample.push_back(depth_key(depth[i]));
+  if (sample.empty()) return uint64_t(1) << 32;
+  const size_t k = std::min(sample.size() - 1, static_cast<size_t>(
+      static_cast<double>(sample.size()) * static_cast<double>(target) / static_cast<double>(m)));
+  std::nth_element(sample.begin(), sample.begin() + static_cast<ptrdiff_t>(k), sample.end());
+  const uint32_t lowest = *std::min_element(sample.begin(), sample.begin() + static_cast<ptrdiff_t>(k) + 1);
+  // at least the splats at the nearest sampled depth (ties there would empty the window)
+  return std::max<uint64_t>(sample[k], uint64_t(lowest) + 1);
 }
 
 // The x-extent of the splat's cull ellipse on the 16 pixel rows of one tile row (rows ty0 + 0.5 ..
@@ -413,7 +454,67 @@ struct SplatInputs {
   }
 };
 
-// Binning of one depth window [lo, hi) of the depth-sorted splats: for every splat and every tile
+// A 3DGS tile rect [x0, x1) x [y0, y1) in tiles (also kept apart from the records, 8 bytes per splat,
+// for the scan that selects the splats behind the first window).
+struct TileRect {
+  int16_t x0, y0, x1, y1;
+};
+
+// The tiles with a half-row still compositing, for testing whether a record's tile rect meets
+// one: per tile row, a bit per tile column (images up to 64 tiles wide; wider ones are tested
+// tile by tile). Built from alive [tiles] (half-row masks) after each window.
+struct LiveTiles {
+  const uint32_t* alive;
+  int gx;
+  std::vector<uint64_t> rows;  // [gy] when gx <= 64
+  LiveTiles(const uint32_t* alive_, int gx_, int gy) : alive(alive_), gx(gx_) {
+    if (gx > 64) return;
+    rows.assign(gy, 0);
+    for (int ty = 0; ty < gy; ++ty)
+      for (int tx = 0; tx < gx; ++tx)
+        if (alive[ty * gx + tx]) rows[ty] |= uint64_t(1) << tx;
+  }
+  bool meets(const TileRect& r) const {
+    const int x0 = r.x0, y0 = r.y0, x1 = r.x1, y1 = r.y1;
+    if (x1 <= x0) return false;
+    if (!rows.empty()) {
+      const int w = x1 - x0;
+      const uint64_t cols = (w >= 64 ? ~uint64_t(0) : (uint64_t(1) << w) - 1) << x0;
+      for (int ty = y0; ty < y1; ++ty)
+        if (rows[ty] & cols) return true;
+      return false;
+    }
+    for (int ty = y0; ty < y1; ++ty)
+      for (int tx = x0; tx < x1; ++tx)
+        if (alive[ty * gx + tx]) return true;
+    return false;
+  }
+};
+
+// The visible splats with depth key >= lo whose rect meets a tile still compositing (alive), in
+// stable depth order: behind the first window, the only splats that can still be binned (alive
+// only loses half-rows as compositing proceeds). One sequential pass over the records, nth chunks.
+std::vector<int32_t> depth_order_survivors(const TileRect* rects, const float* depth, const bool* visible,
+                                           int64_t n, uint64_t lo, const LiveTiles& live, int nth) {
+  nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, n / 16384 + 1)));
+  std::vector<std::vector<int32_t>> part(nth);
+#pragma omp parallel for num_threads(nth) schedule(static, 1)
+  for (int t = 0; t < nth; ++t) {
+    std::vector<int32_t>& out = part[t];
+    for (int64_t s = n * t / nth, hi = n * (t + 1) / nth; s < hi; ++s)
+      if (visible[s] && depth_key(depth[s]) >= lo && live.meets(rects[s]))
+        out.push_back(static_cast<int32_t>(s));
+  }
+  std::vector<int32_t> idx;
+  for (const auto& p : part) idx.insert(idx.end(), p.begin(), p.end());
+  std::vector<uint32_t> key(idx.size());
+  for (size_t i = 0; i < idx.size(); ++i) key[i] = depth_key(depth[idx[i]]);
+  radix_sort(key, idx);
+  return idx;
+}
+
+// Binning of one depth window, rows [lo, hi) of the depth-sorted splats (order[row] = original
+// index; "depth index" below = row): for every splat and every tile
 // of its rect, the half-row mask of its cull ellipse on that tile, restricted to the tile's
 // half-rows that are still compositing (alive[tile]; a half-row whose 8 pixels have all terminated
 // never composites a later splat); pairs with an empty mask are dropped (exact: no pixel there can
@@ -424,6 +525,7 @@ struct SplatInputs {
 // the others src[i] = -1 (row unused, never in a tile list). Tile lists hold depth indices.
 Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* order, Geo* geo, float* feat,
                    int32_t* src, int64_t lo_w, int64_t hi_w, const uint32_t* alive, int nth) {
+  const LiveTiles live(alive, in.gx, in.gy);
   const int gx = in.gx, gy = in.gy, NF = in.C + 1;
   Binning b;
   b.gx = gx;
@@ -451,11 +553,8 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* or
       const int32_t s = order[i];
       Geo g = geo_orig[s];
       const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
-      uint32_t any = 0;
-      for (int ty = rc.y0; ty < rc.y1; ++ty)
-        for (int tx = rc.x0; tx < rc.x1; ++tx) any |= alive[ty * gx + tx];
       src[i] = -1;
-      if (!any) continue;  // every tile of the rect has terminated
+      if (!live.meets(TileRect{g.rect[0], g.rect[1], g.rect[2], g.rect[3]})) continue;  // every tile of the rect has terminated
       in.finish(g);
       const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
@@ -842,18 +941,21 @@ at::Tensor to_tensor(const std::vector<V>& v, at::ScalarType st) {
 // Args: means2d [N,2], conics [N,3], opacities [N], colors [N,C], depths [N] (sort key and the
 //       last feature channel: features = [colors, depths], NF = C + 1), radii [N] int32,
 //       visible [N] bool, background [C]; width, height; cull
-//       (exact culling on/off); count (pair statistics); first_window (splats in the first depth
-//       window, each next one twice as many; <= 0: max(WINDOW_MIN, M / WINDOW_FIRST_DIV)).
+//       (exact culling on/off); count (pair statistics); first_window (about this many splats,
+//       the nearest, in the first depth window, each next one twice as many rows;
+//       <= 0: max(WINDOW_MIN, M / WINDOW_FIRST_DIV)).
 // Returns: color [H,W,NF-1] (= acc + T_final background), alpha [H,W] (= 1 - T_final), depth [H,W]
 //          (accumulated feature NF-1), T_final [H,W], last [H,W] int32 (tile-list position of the
-//          last contributor, -1 if none), then the state for the backward: src [M] int32 (per
-//          depth index: the original index of a binned splat, -1 for a splat never binned, whose
-//          rows of geo and feat are unset), geo [M,16], feat_sorted [M,NF] (or [0,NF] when NF == 4:
-//          features ride in geo), tile_off [T+1] int64, tile_list [P] int32 (depth indices),
-//          tile_mask [P] int32, and stats [NSTATS] float64: contrib pairs, evaluated fwd vectors,
-//          evaluated bwd vectors, tile pairs, wall times in ms of: sort, pack, binning, raster fwd,
-//          raster bwd, bwd reduction, then the process CPU times of the same six stages, then the
-//          number of depth windows.
+//          last contributor, -1 if none), then the state for the backward, with one row per
+//          sorted splat (R <= M rows in depth order; splats behind the first window whose rect
+//          met no live tile have none): src [R] int32 (the original index of a binned splat, -1
+//          for a row never binned, whose geo and feat are unset), geo [R,16], feat_sorted [R,NF]
+//          (or [0,NF] when NF == 4: features ride in geo), tile_off [T+1] int64, tile_list [P]
+//          int32 (rows), tile_mask [P] int32, and stats [NSTATS] float64: contrib pairs,
+//          evaluated fwd vectors, evaluated bwd vectors, tile pairs, wall times in ms of: sort
+//          (including the scan selecting the splats behind the first window), pack, binning,
+//          raster fwd, raster bwd, bwd reduction, then the process CPU times of the same six
+//          stages, then the number of depth windows.
 std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                    at::Tensor colors, at::Tensor depths, at::Tensor radii,
                                    at::Tensor visible, at::Tensor background, int64_t width,
@@ -894,16 +996,35 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   // the inputs; binning then reads one random line per splat instead of five
   thread_local Scratch<Geo> geo_scratch;
   Geo* geo_orig = geo_scratch.get(static_cast<size_t>(N));  // [N] records (visible splats only)
+  thread_local Scratch<TileRect> rect_scratch;
+  TileRect* rects = rect_scratch.get(static_cast<size_t>(N));  // [N] their tile rects
   {
     const bool* vis = visible.data_ptr<bool>();
     at::parallel_for(0, N, 16384, [&](int64_t lo, int64_t hi) {
       for (int64_t s = lo; s < hi; ++s)
-        if (vis[s]) geo_orig[s] = in.raw(s, in.rect(s));
+        if (vis[s]) {
+          const Rect rc = in.rect(s);
+          geo_orig[s] = in.raw(s, rc);
+          rects[s] = {static_cast<int16_t>(rc.x0), static_cast<int16_t>(rc.y0), static_cast<int16_t>(rc.x1),
+                      static_cast<int16_t>(rc.y1)};
+        }
     });
   }
   const Stamp t1 = now();
-  const std::vector<int32_t> order = depth_order(depths.data_ptr<float>(), visible.data_ptr<bool>(), N);
-  const int64_t M = static_cast<int64_t>(order.size());
+  // The first depth window: the visible splats nearer than a sampled depth quantile, depth-sorted.
+  // The later ones are sorted after it has been composited, and only those whose rect still meets
+  // a live tile (depth_order_survivors); order[row] = original index of the splat in that row.
+  const float* dp = depths.data_ptr<float>();
+  const bool* vis = visible.data_ptr<bool>();
+  const int64_t M = std::count(vis, vis + N, true);  // visible splats: an upper bound on the rows
+  const int64_t w0 = first_window > 0 ? first_window : std::max<int64_t>(WINDOW_MIN, M / WINDOW_FIRST_DIV);
+  uint64_t near = window_threshold(dp, vis, N, M, w0);
+  std::vector<int32_t> order = depth_order_range(dp, vis, N, 0, near);
+  if (order.empty() && M > 0) {  // nothing nearer than the sampled quantile (ties): one window
+    near = uint64_t(1) << 32;
+    order = depth_order(dp, vis, N);
+  }
+  const int64_t M1 = static_cast<int64_t>(order.size());
   const Stamp t2 = now();
   auto geo_t = at::empty({M, 16}, at::kFloat);
   auto feat_t = at::empty({NF == 4 ? 0 : M, NF}, at::kFloat);
@@ -915,7 +1036,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   auto Tf_t = at::empty({H, W}, at::kFloat);
   auto last_t = at::empty({H, W}, at::kInt);
   auto stats_t = at::zeros({NSTATS}, at::kDouble);
-  auto src_t = at::empty({M}, at::kInt);  // per depth index: original splat index, -1 if not binned
+  auto src_t = at::empty({M}, at::kInt);  // per row: original splat index, -1 if not binned
   const int T = gx * gy;
   // per-tile compositing state (O(pixels)), kept across the depth windows
   AlignedBuf<float> s_T(static_cast<size_t>(T) * TPIX), s_acc(static_cast<size_t>(T) * NF * TPIX);
@@ -934,15 +1055,15 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   // contributors and hence the backward are those of one full binning; tested bit for bit).
   std::vector<Binning> wins;
   const Stamp t3 = now();
-  double bin_w = 0, bin_c = 0, ras_w = 0, ras_c = 0;
+  double bin_w = 0, bin_c = 0, ras_w = 0, ras_c = 0, sort_w = t2.wall - t1.wall, sort_c = t2.cpu - t1.cpu;
   int64_t n_windows = 0;
   const float* fs = feat_t.data_ptr<float>();
-  const int64_t w0 = first_window > 0 ? first_window : std::max<int64_t>(WINDOW_MIN, M / WINDOW_FIRST_DIV);
   int64_t all_rows = 0;  // half-rows of the image
   for (int t = 0; t < T; ++t) all_rows += __builtin_popcount(alive[t]);
-  int64_t wsize = w0;
-  for (int64_t lo = 0, hi = 0; lo < M; lo = hi) {
-    hi = std::min(M, lo + wsize);
+  int64_t wsize = M1;
+  bool rest_sorted = M1 == M;  // the splats behind the first window are in `order`
+  for (int64_t lo = 0, hi = 0; lo < static_cast<int64_t>(order.size()); lo = hi) {
+    hi = std::min(static_cast<int64_t>(order.size()), lo + wsize);
     const Stamp w1 = now();
     wins.push_back(bin_window(in, geo_orig, order.data(), geo, feat_t.data_ptr<float>(),
                               src_t.data_ptr<int32_t>(), lo, hi, alive.data(), nth));
@@ -981,14 +1102,25 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
     int64_t live_rows = 0;
     for (int t = 0; t < T; ++t) live_rows += __builtin_popcount(alive[t]);
     const bool few_dead = (all_rows - live_rows) * WINDOW_DEAD_DIV < all_rows;
-    wsize = (few_dead && first_window <= 0) ? M - hi : 2 * wsize;
     const Stamp w3 = now();
+    if (!rest_sorted) {  // after the first window: the splats behind it that can still be binned
+      std::vector<int32_t> rest = few_dead ? depth_order_range(dp, vis, N, near, uint64_t(1) << 32)
+                                           : depth_order_survivors(rects, dp, vis, N, near, LiveTiles(alive.data(), gx, gy), nth);
+      order.insert(order.end(), rest.begin(), rest.end());
+      rest_sorted = true;
+    }
+    const int64_t rows = static_cast<int64_t>(order.size());
+    wsize = (few_dead && first_window <= 0) ? rows - hi : 2 * wsize;
+    const Stamp w4 = now();
     bin_w += w2.wall - w1.wall;
     bin_c += w2.cpu - w1.cpu;
     ras_w += w3.wall - w2.wall;
     ras_c += w3.cpu - w2.cpu;
+    sort_w += w4.wall - w3.wall;
+    sort_c += w4.cpu - w3.cpu;
     ++n_windows;
   }
+  const int64_t Mr = static_cast<int64_t>(order.size());  // rows used
   const Stamp t4 = now();
   Binning bins = wins.empty() ? Binning::empty(gx, gy) : concat_windows(wins, gx, gy);
   wins.clear();
@@ -1013,7 +1145,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
     st[1] += static_cast<double>(tstats[8 * t + 1]);
   }
   st[3] = static_cast<double>(P);
-  put_ms(st, 4, t2.wall - t1.wall, t2.cpu - t1.cpu);  // sort
+  put_ms(st, 4, sort_w, sort_c);  // depth sorts (first window, then the splats behind it)
   put_ms(st, 5, (t1.wall - t0.wall) + (t3.wall - t2.wall) + (t5.wall - t4.wall),
          (t1.cpu - t0.cpu) + (t3.cpu - t2.cpu) + (t5.cpu - t4.cpu));  // records, tile state, write-out
   put_ms(st, 6, bin_w, bin_c);  // records + binning
@@ -1025,9 +1157,9 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           depth_t,
           Tf_t,
           last_t,
-          src_t,
-          geo_t,
-          feat_t,
+          src_t.narrow(0, 0, Mr),
+          geo_t.narrow(0, 0, Mr),
+          NF == 4 ? feat_t : feat_t.narrow(0, 0, Mr),
           bins.tile_off.t,
           bins.tile_list.t,
           bins.tile_mask.t,
