@@ -34,7 +34,6 @@
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/zeros.h>
 #include <torch/library.h>
 #include <omp.h>
 
@@ -590,7 +589,7 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
 
 // Backward over the live splats only: those with a non-zero incoming gradient or a non-finite
 // forward intermediate (finite[i] false; there torch's chain rule yields NaN). Every other splat's
-// gradient is exactly zero, as written by the caller (outputs zero-initialised). Live splats are
+// gradient is exactly zero and written as such during the scan (outputs need no fill). Live splats are
 // staged L at a time into contiguous rows, so packs stay full however sparse they are; lanes do
 // not interact, so each splat's result is the same in any pack (any thread count).
 template <typename T>
@@ -610,7 +609,12 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
       const T* cn = gi.cn + gi.scn * i;
       const bool zero = m2[0] == T(0) && m2[1] == T(0) && cn[0] == T(0) && cn[1] == T(0) &&
                         cn[2] == T(0) && gi.dp[gi.sdp * i] == T(0);
-      if (!(zero && finite[i])) live.push_back(i);
+      if (!(zero && finite[i])) {
+        live.push_back(i);
+      } else {  // exactly zero gradients (outputs are not pre-filled)
+        for (int j = 0; j < 3; ++j) g_means[3 * i + j] = T(0), g_scales[3 * i + j] = T(0);
+        for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = T(0);
+      }
     }
     const int64_t nl = static_cast<int64_t>(live.size()), nb = nl / L;
     for (int64_t b = 0; b < nb; ++b) {
@@ -744,9 +748,9 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   check_grad(v_depths, "v_depths", st, N, 0);
   check_input(finite, "finite", at::kBool, N, 0);
   auto opts = means.options();
-  at::Tensor g_means = at::zeros({N, 3}, opts);
-  at::Tensor g_quats = at::zeros({N, 4}, opts);
-  at::Tensor g_scales = at::zeros({N, 3}, opts);
+  at::Tensor g_means = at::empty({N, 3}, opts);  // every row written by backward_impl
+  at::Tensor g_quats = at::empty({N, 4}, opts);
+  at::Tensor g_scales = at::empty({N, 3}, opts);
   auto run = [&](auto zero) {
     using T = decltype(zero);
     const Cam<T> k = make_cam<T>(viewmat, fx, fy, cx, cy, width, height, near_plane, frustum_clamp,
