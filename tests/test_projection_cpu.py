@@ -441,6 +441,15 @@ def test_bench_reports_projection_times():
     assert row["grad_rel_err"] < 1e-5  # existing keys unchanged
     table = format_table(res)
     assert "proj fused ms" in table and "cpu_torch_proj ms" in table
+    # the memory-traffic floor: 112 B per splat + 40 B per pixel at the measured copy bandwidth
+    assert res["copy_gbps"] > 0
+    expect = (300 * 112 + 32 * 32 * 40) / (res["copy_gbps"] * 1e9) * 1e3
+    assert abs(row["traffic_floor_ms"] - expect) < 1e-9 * expect + 1e-12
+    bound = max(row["floor_ms"], row["traffic_floor_ms"])
+    for k, v in row["ms"].items():
+        assert abs(row["x_bound"][k] - v / bound) < 1e-9 * row["x_bound"][k]
+        assert row["x_bound"][k] <= row["x_floor"][k] + 1e-12
+    assert "traffic floor ms" in table and "cpu x max(floors)" in table
 
 
 def test_build_cache_key_is_stable():

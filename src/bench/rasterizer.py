@@ -16,6 +16,13 @@ with gsplat installed, ``gsplat``, with interleaved repetitions in one process. 
   matmul): the time any exact rasterizer needs at peak arithmetic throughput (~42 FLOP forward +
   ~90 backward per blended pair; see docs of the CPU rasterizer study), and each time as a multiple
   ``x_floor`` of it;
+* ``traffic_floor_ms`` = (n_splats x 112 B + pixels x 40 B) / the memory bandwidth measured in the
+  same run (best large ``Tensor.copy_``, bytes read + written): the splats' differentiable
+  parameters (means, quats, scales, opacity, colour: 14 float32) read once and their gradients
+  written once, the three images (colour, alpha, depth: 5 float32 per pixel) written once and
+  their gradients read once. Any rasterizer moves at least this much, whatever the blended pairs;
+  ``x_bound`` = each time / max(floor_ms, traffic_floor_ms), the distance from the larger of
+  the two floors (not the issue's target, which is ``x_floor``);
 * ``speedup_vs_ref`` (median torch_ref / median cpu) and ``grad_rel_err``, the worst
   ||g_cpu - g_ref|| / ||g_ref|| over means, scales, quats, opacities and colours.
 
@@ -56,6 +63,8 @@ from src.rasterizer.projection import TILE, Projected, project_splats, tile_rect
 from src.rasterizer.projection_cpu import project_splats_fused
 
 FLOPS_PER_PAIR = 132  # fwd ~42 + bwd ~90 FLOP per blended (pixel, splat) pair
+BYTES_PER_SPLAT = 2 * 14 * 4  # 14 float32 parameters read, their gradients written
+BYTES_PER_PIXEL = 2 * 5 * 4  # colour (3), alpha, depth written; their gradients read
 ATTRS = ("means", "scales", "quats", "opacities", "colors")
 FULL_SIZES = [(w, n) for w in (100, 200, 400) for n in (10_000, 50_000, 200_000)]
 QUICK_SIZES = [(100, 10_000)]
@@ -185,6 +194,20 @@ def measure_peak_gflops(n: int = 2048, reps: int = 5) -> float:
     return 2 * n**3 / best / 1e9
 
 
+def measure_copy_gbps(mib: int = 256, reps: int = 5) -> float:
+    """Best memory bandwidth (GB/s, bytes read + written) of a large float32 ``Tensor.copy_``
+    with torch's threads."""
+    src = torch.ones(mib * 2**18)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    best = math.inf
+    for _ in range(reps):
+        t = time.perf_counter()
+        dst.copy_(src)
+        best = min(best, time.perf_counter() - t)
+    return 2 * src.numel() * 4 / best / 1e9
+
+
 def ref_upper_bound_pairs(splats: Splats, cam: Camera) -> int:
     """sum over tiles of (#splats binned to the tile) x (#pixels): what torch_ref evaluates."""
     with torch.no_grad():
@@ -294,8 +317,9 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
     rasts = _rasterizers()
     cuda_sync = torch.cuda.synchronize if "gsplat" in rasts else (lambda: None)
     peak = measure_peak_gflops()
-    log(f"fp32 sgemm peak: {peak:.1f} GFLOP/s (torch threads: {torch.get_num_threads()}, "
-        f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')})")
+    gbps = measure_copy_gbps()
+    log(f"fp32 sgemm peak: {peak:.1f} GFLOP/s, copy bandwidth {gbps:.1f} GB/s (torch threads: "
+        f"{torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')})")
     ref_ns_per_pair = 40.0  # prior, replaced by the first measured run
     rows = []
     for scene, (width, n) in ((sc, size) for sc in scenes for size in sizes):
@@ -337,6 +361,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
                 proj_times[k].append(_proj_fwd_bwd(project, splats, cam, out_grads))
         stages = rasts["cpu"].last_stats  # stage times of the last timed cpu run
         floor_ms = contrib * FLOPS_PER_PAIR / (peak * 1e9) * 1e3
+        traffic_ms = (n * BYTES_PER_SPLAT + cam.width * cam.height * BYTES_PER_PIXEL) / (gbps * 1e9) * 1e3
+        bound_ms = max(floor_ms, traffic_ms)
         ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
         ms_min = {k: 1e3 * min(v) for k, v in times.items()}
         err = None
@@ -354,6 +380,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             "proj_ms_min": {k: 1e3 * min(v) for k, v in proj_times.items()},
             "floor_ms": floor_ms,
             "x_floor": {k: v / floor_ms if floor_ms > 0 else None for k, v in ms.items()},
+            "traffic_floor_ms": traffic_ms,
+            "x_bound": {k: v / bound_ms if bound_ms > 0 else None for k, v in ms.items()},
             "grad_rel_err": err,
             "contrib_pairs": contrib,
             "eval_pairs_fwd": int(st["eval_fwd"]),
@@ -365,7 +393,8 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
         }
         rows.append(row)
         log(_format_row(row))
-    return {"peak_gflops": peak, "threads": torch.get_num_threads(), "flops_per_pair": FLOPS_PER_PAIR,
+    return {"peak_gflops": peak, "copy_gbps": gbps, "bytes_per_splat": BYTES_PER_SPLAT,
+            "bytes_per_pixel": BYTES_PER_PIXEL, "threads": torch.get_num_threads(), "flops_per_pair": FLOPS_PER_PAIR,
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""), "rows": rows}
 
 
@@ -381,6 +410,8 @@ def _format_row(r: dict) -> str:
     parts.append(f"speedup {_fmt(r['speedup_vs_ref'], '.0f')}x")
     parts.append("proj " + " ".join(f"{k} {v:.2f} ms" for k, v in r.get("proj_ms", {}).items()))
     parts.append(f"floor {r['floor_ms']:.3f} ms")
+    if "traffic_floor_ms" in r:
+        parts.append(f"traffic floor {r['traffic_floor_ms']:.3f} ms")
     parts.append(f"contrib {r['contrib_pairs'] / 1e6:.2f}M eval {r['eval_pairs_fwd'] / 1e6:.1f}M")
     parts.append(f"grad err {_fmt(r['grad_rel_err'], '.1e')}")
     return " | ".join(parts)
@@ -399,7 +430,8 @@ def format_table(result: dict) -> str:
             if k not in projs:
                 projs.append(k)
     head = ["scene", "W", "N", *[f"{k} ms med (min)" for k in names], *[f"proj {k} ms med (min)" for k in projs],
-            "contrib pairs", "floor ms", *[f"{k} x floor" for k in names], "cpu vs ref", "grad rel err"]
+            "contrib pairs", "floor ms", *[f"{k} x floor" for k in names], "traffic floor ms",
+            *[f"{k} x max(floors)" for k in names], "cpu vs ref", "grad rel err"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in result["rows"]:
         cells = [r.get("scene", "object"), str(r["width"]), f"{r['n_splats'] // 1000}k"]
@@ -411,6 +443,10 @@ def format_table(result: dict) -> str:
         cells += [f"{r['contrib_pairs'] / 1e6:.2f}M", f"{r['floor_ms']:.3f}"]
         for k in names:
             cells.append(f"{r['x_floor'][k]:.0f}x" if k in r["x_floor"] else "-")
+        cells.append(_fmt(r.get("traffic_floor_ms"), ".3f"))
+        for k in names:
+            xb = r.get("x_bound", {})
+            cells.append(f"{xb[k]:.0f}x" if k in xb else "-")
         cells += [_fmt(r["speedup_vs_ref"], ".0f") + ("x" if r["speedup_vs_ref"] else ""),
                   _fmt(r["grad_rel_err"], ".1e")]
         lines.append("| " + " | ".join(cells) + " |")
