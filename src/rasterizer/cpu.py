@@ -72,7 +72,6 @@ class _RasterizeFunction(torch.autograd.Function):
         ctx.save_for_backward(background, t_final, last, *state)
         ctx.stats = stats
         ctx.n_splats = means2d.shape[0]
-        ctx.channels = colors.shape[1]
         ctx.count = count
         ctx.mark_non_differentiable(stats)
         return color, alpha, depth, stats
@@ -82,15 +81,15 @@ class _RasterizeFunction(torch.autograd.Function):
                  _grad_stats: Tensor):
         ext = load_extension()
         background, t_final, last, *state = ctx.saved_tensors
-        (g,) = ext.backward(
+        # original order: g_geo [N, 6] (means2d, conics, depths), g_opacity [N], g_color [N, C]
+        g_geo, g_opacity, g_color = ext.backward(
             grad_color.contiguous(), grad_alpha.contiguous(), grad_depth.contiguous(), background,
-            t_final, last, *state, ctx.stats, ctx.n_splats, ctx.count)  # [N, 6 + C + 1], original order
+            t_final, last, *state, ctx.stats, ctx.n_splats, ctx.count)
         grad_bg = None
         if ctx.needs_input_grad[7]:
             grad_bg = (grad_color * t_final[..., None]).sum(dim=(0, 1))
-        C = ctx.channels
-        # strided views of g (no copies here; the fused projection backward reads strided rows)
-        return (g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:6 + C], g[:, 6 + C], None, None, grad_bg,
+        # strided views of g_geo (no copies; the fused projection backward reads strided rows)
+        return (g_geo[:, 0:2], g_geo[:, 2:5], g_opacity, g_color, g_geo[:, 5], None, None, grad_bg,
                 None, None, None, None, None)
 
 

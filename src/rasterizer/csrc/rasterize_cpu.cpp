@@ -1167,9 +1167,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
 }
 
 // Backward. grad_color [H,W,NF-1], grad_alpha [H,W], grad_depth [H,W], background [NF-1] plus the
-// forward's saved tensors. Returns one
-// [N, 6 + NF] tensor of gradients w.r.t. means2d (cols 0-1), conics (2-4), opacities (5) and
-// features (6..) (zero for culled splats).
+// forward's saved tensors. Returns the gradients (zero for culled splats) g_geo [N, 6] w.r.t.
+// means2d (cols 0-1), conics (2-4) and depths (5), g_opacity [N] and g_color [N, NF - 1].
 // Writes the evaluated backward vectors and the times into stats[2], stats[8], stats[9].
 std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, at::Tensor grad_depth,
                                     at::Tensor background, at::Tensor T_final,
@@ -1255,35 +1254,48 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   // records (depth order) and walks the processed slots of all tiles in tile order (sequential
   // reads), accumulating its own splats' slot records into their output rows (original order);
   // every splat's sum is thus taken in the same order for any thread count (deterministic, no
-  // atomics). Then the sums are mapped to the gradients in place. One output row per splat:
-  // [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures (NF)]; rows of splats that are not
-  // visible or were never binned are zero.
-  auto g_all = at::zeros({N, R}, at::kFloat);
+  // atomics). Then the sums are mapped to the gradients in place. Outputs (original order; zero
+  // for splats not visible or never binned): g_geo [N, 6] = [dL/dmeans2d (2), dL/dconic (3),
+  // dL/ddepth], g_opacity [N], g_color [N, NF - 1] (separate contiguous tensors: autograd takes
+  // the last two as they are, without copies).
+  const int C = NF - 1;
+  auto g_geo = at::zeros({N, 6}, at::kFloat);
+  auto g_op = at::zeros({N}, at::kFloat);
+  auto g_col = at::zeros({N, C}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* srcp = src.data_ptr<int32_t>();
-    float* og = g_all.data_ptr<float>();
+    float* og = g_geo.data_ptr<float>();
+    float* oo = g_op.data_ptr<float>();
+    float* oc = g_col.data_ptr<float>();
     const float* recp = rec;
     const int nth_red = P < MIN_PAIRS_PARALLEL ? 1 : nth;
 #pragma omp parallel num_threads(nth_red)
     {
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
       const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
-      // partial sums accumulate in the splat's (zeroed) output row, then are mapped in place
+      // partial sums accumulate in the splat's (zeroed) output rows, then are mapped in place;
+      // record layout: [means2d (2), conic (3), opacity, features (NF; depth last)]
       for (int tile = 0; tile < T; ++tile) {
         const int64_t s0 = toff[tile], s1 = toff[tile] + nproc[tile];  // processed slots
         for (int64_t slot = s0; slot < s1; ++slot) {
           const int64_t i = tl[slot];
           if (i < lo || i >= hi) continue;
           const float* r = recp + slot * R;
-          float* d = og + static_cast<int64_t>(srcp[i]) * R;
-          for (int q = 0; q < R; ++q) d[q] += r[q];
+          const int64_t s = srcp[i];
+          float* dg = og + s * 6;
+          for (int q = 0; q < 5; ++q) dg[q] += r[q];
+          dg[5] += r[6 + C];
+          oo[s] += r[5];
+          float* dc = oc + s * C;
+          for (int q = 0; q < C; ++q) dc[q] += r[6 + q];
         }
       }
       for (int64_t i = lo; i < hi; ++i) {
         if (srcp[i] < 0) continue;  // unused row (the splat was never binned)
         const Geo& g = gp[i];
-        float* o = og + static_cast<int64_t>(srcp[i]) * R;
+        const int64_t s = srcp[i];
+        float* o = og + s * 6;
         const float s0 = o[0], s1 = o[1];
         o[0] = g.a * s0 + g.b * s1;
         o[1] = g.b * s0 + g.c * s1;
@@ -1300,7 +1312,7 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   st[2] = static_cast<double>(ev);
   put_ms(st, 8, t1.wall - t0.wall, t1.cpu - t0.cpu);  // raster bwd
   put_ms(st, 9, t2.wall - t1.wall, t2.cpu - t1.cpu);  // reduction
-  return {g_all};
+  return {g_geo, g_op, g_col};
 }
 
 // Test helpers.
