@@ -454,9 +454,12 @@ def format_table(result: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI entry: ``python -m src.bench rasterizer [--out FILE.json] [--quick]``."""
+    """CLI entry: ``python -m src.bench rasterizer [--out FILE.json] [--chart FILE.png] [--quick]``
+    (or ``--from-json FILE.json [--chart FILE.png]`` to table / chart an earlier result)."""
     p = argparse.ArgumentParser(prog="python -m src.bench rasterizer", description=__doc__.split("\n")[0])
     p.add_argument("--out", help="write the results as JSON to this file")
+    p.add_argument("--chart", help="also draw the times against the floors into this PNG file")
+    p.add_argument("--from-json", help="do not run: print the table (and --chart) of this earlier --out file")
     p.add_argument("--quick", action="store_true", help="only 100 px x 10k splats (smoke test)")
     p.add_argument("--reps", type=int, default=None, help="timed repetitions (default 5, quick 3)")
     p.add_argument("--ref-max-s", type=float, default=20.0, help="skip torch_ref above this estimate")
@@ -468,6 +471,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=None,
                    help="torch/OpenMP threads for everything (default: torch's default)")
     args = p.parse_args(argv)
+    if args.from_json:
+        try:
+            with open(args.from_json) as f:
+                result = json.load(f)
+            rows = result["rows"]
+        except (OSError, ValueError, KeyError) as e:
+            p.error(f"--from-json {args.from_json}: not a rasterizer benchmark result ({e})")
+        if not rows:
+            p.error(f"--from-json {args.from_json}: no rows")
+        print(format_table(result))
+        _write_chart(result, args.chart)
+        return 0
     if args.threads:
         torch.set_num_threads(args.threads)
     sizes = QUICK_SIZES if args.quick else FULL_SIZES
@@ -481,7 +496,17 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(format_table(result))
     if args.out:
-        with open(args.out, "w") as f:
+        tmp = args.out + ".tmp"
+        with open(tmp, "w") as f:
             json.dump(result, f, indent=2)
+        os.replace(tmp, args.out)  # never a half-written result
         print(f"\nwrote {args.out}")
+    _write_chart(result, args.chart)
     return 0
+
+
+def _write_chart(result: dict, path: str | None) -> None:
+    if path:
+        from src.bench.rasterizer_chart import make_rasterizer_chart
+
+        print(f"wrote {make_rasterizer_chart(result, path)}")
