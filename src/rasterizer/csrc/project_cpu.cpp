@@ -589,9 +589,9 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
 
 // Backward over the live splats only: those with a non-zero incoming gradient or a non-finite
 // forward intermediate (finite[i] false; there torch's chain rule yields NaN). Every other splat's
-// gradient is exactly zero and written as such during the scan (outputs need no fill). Live splats are
-// staged L at a time into contiguous rows, so packs stay full however sparse they are; lanes do
-// not interact, so each splat's result is the same in any pack (any thread count).
+// gradient is exactly zero and written as such during the scan (outputs need no fill). Live
+// splats are staged L at a time into contiguous rows, so packs stay full however sparse they are;
+// lanes do not interact, so each splat's result is the same in any pack (any thread count).
 template <typename T>
 void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, const bool* finite,
                    int64_t N, const GradIn<T>& gi, T* g_means, T* g_quats, T* g_scales) {
@@ -612,7 +612,10 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
       if (!(zero && finite[i])) {
         live.push_back(i);
       } else {  // exactly zero gradients (outputs are not pre-filled)
-        for (int j = 0; j < 3; ++j) g_means[3 * i + j] = T(0), g_scales[3 * i + j] = T(0);
+        for (int j = 0; j < 3; ++j) {
+          g_means[3 * i + j] = T(0);
+          g_scales[3 * i + j] = T(0);
+        }
         for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = T(0);
       }
     }

@@ -493,7 +493,8 @@ struct LiveTiles {
 
 // The visible splats with depth key >= lo whose rect meets a tile still compositing (alive), in
 // stable depth order: behind the first window, the only splats that can still be binned (alive
-// only loses half-rows as compositing proceeds). One sequential pass over the records, nth chunks.
+// only loses half-rows as compositing proceeds). One sequential pass over the 8-byte rects (not
+// the 64-byte records) in nth chunks, then a stable radix sort of what passed.
 std::vector<int32_t> depth_order_survivors(const TileRect* rects, const float* depth, const bool* visible,
                                            int64_t n, uint64_t lo, const LiveTiles& live, int nth) {
   nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, n / 16384 + 1)));
@@ -554,7 +555,8 @@ Binning bin_window(const SplatInputs& in, const Geo* geo_orig, const int32_t* or
       Geo g = geo_orig[s];
       const Rect rc = {g.rect[0], g.rect[1], g.rect[2], g.rect[3]};
       src[i] = -1;
-      if (!live.meets(TileRect{g.rect[0], g.rect[1], g.rect[2], g.rect[3]})) continue;  // every tile of the rect has terminated
+      // every tile of the rect has terminated
+      if (!live.meets(TileRect{g.rect[0], g.rect[1], g.rect[2], g.rect[3]})) continue;
       in.finish(g);
       const size_t before = fd.size();
       for (int ty = rc.y0; ty < rc.y1; ++ty) {
@@ -1104,8 +1106,10 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
     const bool few_dead = (all_rows - live_rows) * WINDOW_DEAD_DIV < all_rows;
     const Stamp w3 = now();
     if (!rest_sorted) {  // after the first window: the splats behind it that can still be binned
-      std::vector<int32_t> rest = few_dead ? depth_order_range(dp, vis, N, near, uint64_t(1) << 32)
-                                           : depth_order_survivors(rects, dp, vis, N, near, LiveTiles(alive.data(), gx, gy), nth);
+      // (where few half-rows have terminated, testing the rects would keep almost all of them)
+      std::vector<int32_t> rest =
+          few_dead ? depth_order_range(dp, vis, N, near, uint64_t(1) << 32)
+                   : depth_order_survivors(rects, dp, vis, N, near, LiveTiles(alive.data(), gx, gy), nth);
       order.insert(order.end(), rest.begin(), rest.end());
       rest_sorted = true;
     }
