@@ -1255,9 +1255,9 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   }
   const Stamp t1 = now();
   // Per-splat reduction over its tiles in a fixed (tile) order: each thread owns a range of
-  // records (depth order) and walks the processed slots of all tiles in tile order (sequential
-  // reads), accumulating its own splats' slot records into their output rows (original order);
-  // every splat's sum is thus taken in the same order for any thread count (deterministic, no
+  // rows (depth order) and walks its run of the processed slots of every tile in tile order
+  // (sequential reads), accumulating its own splats' slot records into their output rows
+  // (original order); every splat's sum is thus taken in the same order for any thread count (deterministic, no
   // atomics). Then the sums are mapped to the gradients in place. Outputs (original order; zero
   // for splats not visible or never binned): g_geo [N, 6] = [dL/dmeans2d (2), dL/dconic (3),
   // dL/ddepth], g_opacity [N], g_color [N, NF - 1] (separate contiguous tensors: autograd takes
@@ -1281,10 +1281,14 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
       // partial sums accumulate in the splat's (zeroed) output rows, then are mapped in place;
       // record layout: [means2d (2), conic (3), opacity, features (NF; depth last)]
       for (int tile = 0; tile < T; ++tile) {
-        const int64_t s0 = toff[tile], s1 = toff[tile] + nproc[tile];  // processed slots
-        for (int64_t slot = s0; slot < s1; ++slot) {
+        // processed slots; a tile list holds rows in increasing (depth) order, so this thread's
+        // rows [lo, hi) are one contiguous run of it
+        const int32_t* first = tl + toff[tile];
+        const int32_t* end = first + nproc[tile];
+        const int32_t* b0 = std::lower_bound(first, end, static_cast<int32_t>(lo));
+        const int32_t* b1 = std::lower_bound(b0, end, static_cast<int32_t>(hi));  // rows < 2^31
+        for (int64_t slot = b0 - tl, s1 = b1 - tl; slot < s1; ++slot) {
           const int64_t i = tl[slot];
-          if (i < lo || i >= hi) continue;
           const float* r = recp + slot * R;
           const int64_t s = srcp[i];
           float* dg = og + s * 6;
