@@ -50,3 +50,14 @@ def test_from_json_names_a_bad_file(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--from-json", str(bad)])
     assert "bad.json" in capsys.readouterr().err
+
+
+def test_from_json_names_the_row_and_missing_key(tmp_path, capsys):
+    bad = tmp_path / "partial.json"
+    res = _result()
+    del res["rows"][1]["floor_ms"]
+    bad.write_text(json.dumps(res))
+    with pytest.raises(SystemExit):
+        main(["--from-json", str(bad)])
+    err = capsys.readouterr().err
+    assert "partial.json" in err and "rows[1]" in err and "floor_ms" in err

@@ -427,6 +427,7 @@ def test_cpu_config_uses_fused_projection():
     assert cfg.projection == "fused"
     rast = build(cfg)
     assert isinstance(rast, CpuRasterizer) and rast.projection == "fused"
+    assert cfg.first_window == 0 and rast.first_window == 0  # the knob reaches the rasterizer
     assert CpuRasterizer().projection == "fused"
 
 

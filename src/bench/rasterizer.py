@@ -68,6 +68,9 @@ BYTES_PER_PIXEL = 2 * 5 * 4  # colour (3), alpha, depth written; their gradients
 ATTRS = ("means", "scales", "quats", "opacities", "colors")
 FULL_SIZES = [(w, n) for w in (100, 200, 400) for n in (10_000, 50_000, 200_000)]
 QUICK_SIZES = [(100, 10_000)]
+# keys of a result row that format_table and the chart read (checked by --from-json)
+ROW_KEYS = ("width", "n_splats", "ms", "ms_min", "floor_ms", "x_floor", "contrib_pairs", "speedup_vs_ref",
+            "grad_rel_err")
 PROJECTIONS: dict[str, Callable[..., Projected]] = {"torch": project_splats, "fused": project_splats_fused}
 
 
@@ -476,10 +479,14 @@ def main(argv: list[str] | None = None) -> int:
             with open(args.from_json) as f:
                 result = json.load(f)
             rows = result["rows"]
-        except (OSError, ValueError, KeyError) as e:
+        except (OSError, ValueError, KeyError, TypeError) as e:
             p.error(f"--from-json {args.from_json}: not a rasterizer benchmark result ({e})")
         if not rows:
             p.error(f"--from-json {args.from_json}: no rows")
+        for i, r in enumerate(rows):
+            missing = [k for k in ROW_KEYS if not isinstance(r, dict) or k not in r]
+            if missing:
+                p.error(f"--from-json {args.from_json}: rows[{i}] lacks {', '.join(missing)}")
         print(format_table(result))
         _write_chart(result, args.chart)
         return 0
@@ -497,9 +504,13 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(result))
     if args.out:
         tmp = args.out + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump(result, f, indent=2)
-        os.replace(tmp, args.out)  # never a half-written result
+        try:
+            with open(tmp, "w") as f:
+                json.dump(result, f, indent=2)
+            os.replace(tmp, args.out)  # never a half-written result
+        finally:
+            if os.path.exists(tmp):
+                os.remove(tmp)
         print(f"\nwrote {args.out}")
     _write_chart(result, args.chart)
     return 0

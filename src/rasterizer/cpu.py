@@ -44,7 +44,7 @@ class _RasterizeFunction(torch.autograd.Function):
     [colors, depths], NF = C + 1, without materialising their concatenation), radii [N] int32,
     visible [N] bool, background [C].
     Outputs: color [H, W, C] = sum_j c_j alpha_j T_j + T_final bg, alpha [H, W] = 1 - T_final,
-    depth [H, W] = sum_j z_j alpha_j T_j, stats [16] float64 (non-differentiable; see
+    depth [H, W] = sum_j z_j alpha_j T_j, stats [17] float64 (non-differentiable; see
     rasterize_cpu.cpp ``forward``).
     """
 
