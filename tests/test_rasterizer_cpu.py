@@ -308,8 +308,9 @@ def test_depth_windows_are_exact_with_depth_ties():
 
 
 def test_depth_windows_exact_on_images_wider_than_64_tiles():
-    """Images wider than 64 tiles test the live tiles one by one instead of per-row bitmasks
-    (1040 x 24 px: 65 tile columns); still bit-identical to one window, and equal to torch_ref."""
+    """A wide image (1040 x 24 px: 65 tile columns, more than one 64-bit word per tile row) through
+    the live-tile test of the splats behind the first window: still bit-identical to one window, and
+    equal to torch_ref."""
     g = torch.Generator().manual_seed(9)
     n = 8000
     means = torch.cat([torch.rand(n, 1, generator=g) * 90 - 45, torch.rand(n, 1, generator=g) * 0.6 - 0.3,

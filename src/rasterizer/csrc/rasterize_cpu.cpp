@@ -72,6 +72,7 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f;
 constexpr float T_MIN = 1e-4f;
 constexpr int PREFETCH = 8;  // splats ahead in a tile list
 constexpr int64_t MIN_PAIRS_PARALLEL = 16384;  // fewer (splat, tile) pairs: one thread (~1 ms of work)
+constexpr int64_t MIN_SORT_CHUNK = 16384;  // depth sort / key selection: elements per thread at least
 // Depth windows of the forward: the first holds ~max(WINDOW_MIN, M / WINDOW_FIRST_DIV) of the M
 // visible splats, each next one twice as many rows (at most ~log2(WINDOW_FIRST_DIV) + 1 windows) ...
 constexpr int64_t WINDOW_MIN = 16384;
@@ -169,67 +170,120 @@ inline uint32_t depth_key(float d) {
 }
 
 // Stable LSD radix sort (8-bit digits) of idx by key; both are permuted. Passes whose digit is the
-// same for every element are skipped.
-void radix_sort(std::vector<uint32_t>& key, std::vector<int32_t>& idx) {
+// same for every element are skipped. Each pass splits the array into nt contiguous chunks: a
+// histogram per chunk, offsets digit-major then chunk-minor (so equal digits keep their order:
+// stable, and the same permutation for any nt), then every chunk scatters its elements.
+void radix_sort(std::vector<uint32_t>& key, std::vector<int32_t>& idx, int nt) {
   constexpr int BITS = 8;
   constexpr uint32_t RADIX = 1u << BITS;
   constexpr int PASSES = 32 / BITS;
   const size_t m = key.size();
   if (m == 0) return;
-  std::vector<uint32_t> count(static_cast<size_t>(PASSES) * RADIX, 0u);
-  for (size_t i = 0; i < m; ++i)
-    for (int p = 0; p < PASSES; ++p) count[p * RADIX + ((key[i] >> (p * BITS)) & (RADIX - 1))]++;
+  nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nt, static_cast<int64_t>(m) / MIN_SORT_CHUNK)));
+  // the digits that vary (a pass over a constant digit moves nothing)
+  std::vector<int> passes;
+  for (int p = 0; p < PASSES; ++p) {
+    const uint32_t d0 = (key[0] >> (p * BITS)) & (RADIX - 1);
+    bool varies = false;
+    for (size_t i = 1; i < m && !varies; ++i) varies = ((key[i] >> (p * BITS)) & (RADIX - 1)) != d0;
+    if (varies) passes.push_back(p);
+  }
+  if (passes.empty()) return;
   std::vector<uint32_t> key2(m);
   std::vector<int32_t> idx2(m);
-  for (int p = 0; p < PASSES; ++p) {
-    uint32_t* cnt = count.data() + p * RADIX;
-    const int shift = p * BITS;
-    if (cnt[(key[0] >> shift) & (RADIX - 1)] == m) continue;  // digit constant: no-op pass
-    uint32_t sum = 0;
-    for (uint32_t r = 0; r < RADIX; ++r) {
-      const uint32_t c = cnt[r];
-      cnt[r] = sum;
-      sum += c;
-    }
-    const bool last_pass = [&] {  // no later pass moves elements: the keys need not be written
-      for (int q = p + 1; q < PASSES; ++q)
-        if (count[q * RADIX + ((key[0] >> (q * BITS)) & (RADIX - 1))] != m) return false;
-      return true;
-    }();
-    if (last_pass) {
-      for (size_t i = 0; i < m; ++i) idx2[cnt[(key[i] >> shift) & (RADIX - 1)]++] = idx[i];
-    } else {
-      for (size_t i = 0; i < m; ++i) {
-        const uint32_t pos = cnt[(key[i] >> shift) & (RADIX - 1)]++;
-        key2[pos] = key[i];
-        idx2[pos] = idx[i];
+  std::vector<uint32_t> cnt(static_cast<size_t>(nt) * RADIX);  // [chunk][digit]
+  for (size_t q = 0; q < passes.size(); ++q) {
+    const int shift = passes[q] * BITS;
+    const bool last_pass = q + 1 == passes.size();  // no later pass reads the keys
+    const uint32_t* kin = key.data();
+    const int32_t* iin = idx.data();
+#pragma omp parallel num_threads(nt)
+    {
+#pragma omp for schedule(static, 1)
+      for (int t = 0; t < nt; ++t) {
+        uint32_t* c = cnt.data() + static_cast<size_t>(t) * RADIX;
+        std::fill(c, c + RADIX, 0u);
+        for (size_t i = m * t / nt, hi = m * (t + 1) / nt; i < hi; ++i) c[(kin[i] >> shift) & (RADIX - 1)]++;
       }
-      key.swap(key2);
+#pragma omp single
+      {
+        uint32_t sum = 0;
+        for (uint32_t r = 0; r < RADIX; ++r)
+          for (int t = 0; t < nt; ++t) {
+            uint32_t& c = cnt[static_cast<size_t>(t) * RADIX + r];
+            const uint32_t n = c;
+            c = sum;
+            sum += n;
+          }
+      }  // implicit barrier
+#pragma omp for schedule(static, 1)
+      for (int t = 0; t < nt; ++t) {
+        uint32_t* c = cnt.data() + static_cast<size_t>(t) * RADIX;
+        const size_t lo = m * t / nt, hi = m * (t + 1) / nt;
+        if (last_pass) {
+          for (size_t i = lo; i < hi; ++i) idx2[c[(kin[i] >> shift) & (RADIX - 1)]++] = iin[i];
+        } else {
+          for (size_t i = lo; i < hi; ++i) {
+            const uint32_t pos = c[(kin[i] >> shift) & (RADIX - 1)]++;
+            key2[pos] = kin[i];
+            idx2[pos] = iin[i];
+          }
+        }
+      }
     }
+    if (!last_pass) key.swap(key2);
     idx.swap(idx2);
   }
+}
+
+// The visible splats s with lo <= depth_key(depth[s]) < hi and keep(s), as (key, index) pairs in
+// the original order: nt contiguous chunks scanned in parallel, then concatenated in order.
+template <typename Keep>
+void select_keys(const float* depth, const bool* visible, int64_t n, uint64_t lo, uint64_t hi, const Keep& keep,
+                 int nt, std::vector<uint32_t>& key, std::vector<int32_t>& idx) {
+  nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nt, n / MIN_SORT_CHUNK)));
+  key.resize(static_cast<size_t>(n));  // chunk t compacts into [n t / nt, ...) (branch-free writes)
+  idx.resize(static_cast<size_t>(n));
+  std::vector<int64_t> kept(nt);
+#pragma omp parallel for num_threads(nt) schedule(static, 1)
+  for (int t = 0; t < nt; ++t) {
+    const int64_t s0 = n * t / nt, s1 = n * (t + 1) / nt;
+    uint32_t* kp = key.data() + s0;
+    int32_t* ip = idx.data() + s0;
+    int64_t c = 0;
+    for (int64_t s = s0; s < s1; ++s) {
+      const uint32_t k = depth_key(depth[s]);
+      kp[c] = k;
+      ip[c] = static_cast<int32_t>(s);
+      c += visible[s] & (k >= lo) & (k < hi) & keep(s);
+    }
+    kept[t] = c;
+  }
+  int64_t o = kept[0];  // close the gaps between the chunks, in order
+  for (int t = 1; t < nt; ++t) {
+    const int64_t s0 = n * t / nt;
+    std::copy(key.begin() + s0, key.begin() + s0 + kept[t], key.begin() + o);
+    std::copy(idx.begin() + s0, idx.begin() + s0 + kept[t], idx.begin() + o);
+    o += kept[t];
+  }
+  key.resize(static_cast<size_t>(o));
+  idx.resize(static_cast<size_t>(o));
 }
 
 // The visible splats (original indices) whose depth key k satisfies lo <= k < hi, in stable depth
 // order (ties keep the original order). [0, 2^32) selects every visible splat.
 std::vector<int32_t> depth_order_range(const float* depth, const bool* visible, int64_t n, uint64_t lo,
-                                       uint64_t hi) {
+                                       uint64_t hi, int nt) {
   std::vector<uint32_t> key;
   std::vector<int32_t> idx;
-  for (int64_t i = 0; i < n; ++i) {
-    if (!visible[i]) continue;
-    const uint32_t k = depth_key(depth[i]);
-    if (k < lo || k >= hi) continue;
-    key.push_back(k);
-    idx.push_back(static_cast<int32_t>(i));
-  }
-  radix_sort(key, idx);
+  select_keys(depth, visible, n, lo, hi, [](int64_t) { return true; }, nt, key, idx);
+  radix_sort(key, idx, nt);
   return idx;
 }
 
 // Stable depth order of the visible splats (original indices).
-std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n) {
-  return depth_order_range(depth, visible, n, 0, uint64_t(1) << 32);
+std::vector<int32_t> depth_order(const float* depth, const bool* visible, int64_t n, int nt) {
+  return depth_order_range(depth, visible, n, 0, uint64_t(1) << 32, nt);
 }
 
 // A depth key below which roughly `target` of the m visible splats lie: the matching quantile of
@@ -460,34 +514,30 @@ struct TileRect {
   int16_t x0, y0, x1, y1;
 };
 
-// The tiles with a half-row still compositing, for testing whether a record's tile rect meets
-// one: per tile row, a bit per tile column (images up to 64 tiles wide; wider ones are tested
-// tile by tile). Built from alive [tiles] (half-row masks) after each window.
+// The tiles with a half-row still compositing, for testing whether a tile rect meets one in O(1)
+// and without data-dependent branches (the test runs on every splat behind the first window, and
+// about half pass: a loop over the rect's rows mispredicted most of them): a summed-area table
+// S[y][x] = number of live tiles in [0, x) x [0, y), built from alive [tiles] (half-row masks)
+// after each window.
 struct LiveTiles {
-  const uint32_t* alive;
   int gx;
-  std::vector<uint64_t> rows;  // [gy] when gx <= 64
-  LiveTiles(const uint32_t* alive_, int gx_, int gy) : alive(alive_), gx(gx_) {
-    if (gx > 64) return;
-    rows.assign(gy, 0);
-    for (int ty = 0; ty < gy; ++ty)
-      for (int tx = 0; tx < gx; ++tx)
-        if (alive[ty * gx + tx]) rows[ty] |= uint64_t(1) << tx;
-  }
-  bool meets(const TileRect& r) const {
-    const int x0 = r.x0, y0 = r.y0, x1 = r.x1, y1 = r.y1;
-    if (x1 <= x0) return false;
-    if (!rows.empty()) {
-      const int w = x1 - x0;
-      const uint64_t cols = (w >= 64 ? ~uint64_t(0) : (uint64_t(1) << w) - 1) << x0;
-      for (int ty = y0; ty < y1; ++ty)
-        if (rows[ty] & cols) return true;
-      return false;
+  std::vector<int32_t> sat;  // [(gy + 1) * (gx + 1)]
+  LiveTiles(const uint32_t* alive, int gx_, int gy) : gx(gx_), sat(static_cast<size_t>(gy + 1) * (gx_ + 1), 0) {
+    const int w = gx + 1;
+    for (int ty = 0; ty < gy; ++ty) {
+      int32_t run = 0;
+      for (int tx = 0; tx < gx; ++tx) {
+        run += alive[ty * gx + tx] != 0;
+        sat[(ty + 1) * w + tx + 1] = sat[ty * w + tx + 1] + run;
+      }
     }
-    for (int ty = y0; ty < y1; ++ty)
-      for (int tx = x0; tx < x1; ++tx)
-        if (alive[ty * gx + tx]) return true;
-    return false;
+  }
+  // rect coordinates are within [0, gx] x [0, gy] (tile_rect clamps them)
+  bool meets(const TileRect& r) const {
+    const int w = gx + 1;
+    const int32_t* S = sat.data();
+    const int32_t live = S[r.y1 * w + r.x1] - S[r.y0 * w + r.x1] - S[r.y1 * w + r.x0] + S[r.y0 * w + r.x0];
+    return (r.x1 > r.x0) & (r.y1 > r.y0) & (live > 0);
   }
 };
 
@@ -497,20 +547,11 @@ struct LiveTiles {
 // the 64-byte records) in nth chunks, then a stable radix sort of what passed.
 std::vector<int32_t> depth_order_survivors(const TileRect* rects, const float* depth, const bool* visible,
                                            int64_t n, uint64_t lo, const LiveTiles& live, int nth) {
-  nth = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nth, n / 16384 + 1)));
-  std::vector<std::vector<int32_t>> part(nth);
-#pragma omp parallel for num_threads(nth) schedule(static, 1)
-  for (int t = 0; t < nth; ++t) {
-    std::vector<int32_t>& out = part[t];
-    for (int64_t s = n * t / nth, hi = n * (t + 1) / nth; s < hi; ++s)
-      if (visible[s] && depth_key(depth[s]) >= lo && live.meets(rects[s]))
-        out.push_back(static_cast<int32_t>(s));
-  }
+  std::vector<uint32_t> key;
   std::vector<int32_t> idx;
-  for (const auto& p : part) idx.insert(idx.end(), p.begin(), p.end());
-  std::vector<uint32_t> key(idx.size());
-  for (size_t i = 0; i < idx.size(); ++i) key[i] = depth_key(depth[idx[i]]);
-  radix_sort(key, idx);
+  select_keys(depth, visible, n, lo, uint64_t(1) << 32, [&](int64_t s) { return live.meets(rects[s]); }, nth,
+              key, idx);
+  radix_sort(key, idx, nth);
   return idx;
 }
 
@@ -1009,6 +1050,8 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
           geo_orig[s] = in.raw(s, rc);
           rects[s] = {static_cast<int16_t>(rc.x0), static_cast<int16_t>(rc.y0), static_cast<int16_t>(rc.x1),
                       static_cast<int16_t>(rc.y1)};
+        } else {
+          rects[s] = {0, 0, 0, 0};  // empty: meets no tile (the survivor scan tests every splat)
         }
     });
   }
@@ -1021,10 +1064,10 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
   const int64_t M = std::count(vis, vis + N, true);  // visible splats: an upper bound on the rows
   const int64_t w0 = first_window > 0 ? first_window : std::max<int64_t>(WINDOW_MIN, M / WINDOW_FIRST_DIV);
   uint64_t near = window_threshold(dp, vis, N, M, w0);
-  std::vector<int32_t> order = depth_order_range(dp, vis, N, 0, near);
+  std::vector<int32_t> order = depth_order_range(dp, vis, N, 0, near, nth);
   if (order.empty() && M > 0) {  // nothing nearer than the sampled quantile (ties): one window
     near = uint64_t(1) << 32;
-    order = depth_order(dp, vis, N);
+    order = depth_order(dp, vis, N, nth);
   }
   const int64_t M1 = static_cast<int64_t>(order.size());
   const Stamp t2 = now();
@@ -1108,7 +1151,7 @@ std::vector<at::Tensor> forward(at::Tensor means2d, at::Tensor conics, at::Tenso
     if (!rest_sorted) {  // after the first window: the splats behind it that can still be binned
       // (where few half-rows have terminated, testing the rects would keep almost all of them)
       std::vector<int32_t> rest =
-          few_dead ? depth_order_range(dp, vis, N, near, uint64_t(1) << 32)
+          few_dead ? depth_order_range(dp, vis, N, near, uint64_t(1) << 32, nth)
                    : depth_order_survivors(rects, dp, vis, N, near, LiveTiles(alive.data(), gx, gy), nth);
       order.insert(order.end(), rest.begin(), rest.end());
       rest_sorted = true;
@@ -1263,9 +1306,9 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
   // dL/ddepth], g_opacity [N], g_color [N, NF - 1] (separate contiguous tensors: autograd takes
   // the last two as they are, without copies).
   const int C = NF - 1;
-  auto g_geo = at::zeros({N, 6}, at::kFloat);
-  auto g_op = at::zeros({N}, at::kFloat);
-  auto g_col = at::zeros({N, C}, at::kFloat);
+  auto g_geo = at::empty({N, 6}, at::kFloat);  // zeroed below, each thread its share of the rows
+  auto g_op = at::empty({N}, at::kFloat);
+  auto g_col = at::empty({N, C}, at::kFloat);
   {
     const Geo* gp = reinterpret_cast<const Geo*>(geo_t.data_ptr<float>());
     const int32_t* srcp = src.data_ptr<int32_t>();
@@ -1277,6 +1320,13 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
 #pragma omp parallel num_threads(nth_red)
     {
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+      {  // zero the outputs: this thread's share of the rows (original order)
+        const int64_t z0 = N * t / nt, z1 = N * (t + 1) / nt;
+        std::fill(og + z0 * 6, og + z1 * 6, 0.0f);
+        std::fill(oo + z0, oo + z1, 0.0f);
+        std::fill(oc + z0 * C, oc + z1 * C, 0.0f);
+      }
+#pragma omp barrier
       const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
       // partial sums accumulate in the splat's (zeroed) output rows, then are mapped in place;
       // record layout: [means2d (2), conic (3), opacity, features (NF; depth last)]
@@ -1344,7 +1394,7 @@ at::Tensor depth_order_py(at::Tensor depths, at::Tensor visible) {
   TORCH_CHECK(visible.scalar_type() == at::kBool && visible.is_contiguous() &&
                   visible.size(0) == depths.size(0),
               "visible must be a contiguous bool tensor like depths");
-  auto o = depth_order(depths.data_ptr<float>(), visible.data_ptr<bool>(), depths.size(0));
+  auto o = depth_order(depths.data_ptr<float>(), visible.data_ptr<bool>(), depths.size(0), num_threads());
   auto t = at::empty({static_cast<int64_t>(o.size())}, at::kLong);
   std::copy(o.begin(), o.end(), t.data_ptr<int64_t>());
   return t;
