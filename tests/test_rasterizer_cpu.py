@@ -451,6 +451,26 @@ def test_bench_smoke():
     assert math.isfinite(row["speedup_vs_ref"])
 
 
+def test_bench_floors_use_the_best_peak_of_the_run(monkeypatch):
+    """The peak and bandwidth are re-measured before every row; every row's floor uses the best of
+    the run (a low reading, e.g. while the host is busy, would inflate the floors), all readings are
+    kept."""
+    import src.bench.rasterizer as bench
+
+    peaks = iter([100.0, 400.0, 200.0])
+    bws = iter([10.0, 5.0, 20.0])
+    monkeypatch.setattr(bench, "measure_peak_gflops", lambda reps=5: next(peaks))
+    monkeypatch.setattr(bench, "measure_copy_gbps", lambda reps=5: next(bws))
+    res = bench.run([(32, 300), (32, 400), (40, 300)], reps=1, log=lambda _: None, scenes=("cube",))
+    assert res["peak_gflops"] == 400.0 and res["copy_gbps"] == 20.0
+    assert res["peak_gflops_samples"] == [100.0, 400.0, 200.0]
+    for row in res["rows"]:
+        assert row["floor_ms"] == pytest.approx(row["contrib_pairs"] * bench.FLOPS_PER_PAIR / 400e9 * 1e3)
+        traffic = (row["n_splats"] * bench.BYTES_PER_SPLAT + row["pixels"] * bench.BYTES_PER_PIXEL) / 20e9 * 1e3
+        assert row["traffic_floor_ms"] == pytest.approx(traffic)
+        assert row["x_floor"]["cpu"] == pytest.approx(row["ms"]["cpu"] / row["floor_ms"])
+
+
 def test_bench_cube_scene_matches_the_study():
     """The ``cube`` scene has the study's 3-20 px splat radii at every width; rows name their scene
     and an unknown scene is refused with the list of known ones."""

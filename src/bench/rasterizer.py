@@ -13,11 +13,13 @@ with gsplat installed, ``gsplat``, with interleaved repetitions in one process. 
 * ``contrib_pairs``: (pixel, splat) pairs that actually blend (alpha >= 1/255, before termination),
   counted by the cpu kernel;
 * ``floor_ms`` = contrib_pairs x 132 FLOP / the fp32 sgemm peak measured in the same run (2048^2
-  matmul): the time any exact rasterizer needs at peak arithmetic throughput (~42 FLOP forward +
-  ~90 backward per blended pair; see docs of the CPU rasterizer study), and each time as a multiple
-  ``x_floor`` of it;
+  matmul, re-measured before every row; the best of the run is used, since a busy host only ever
+  lowers a measurement and a low one would inflate every floor; all samples are in the JSON): the
+  time any exact rasterizer needs at peak arithmetic throughput (~42 FLOP forward + ~90 backward
+  per blended pair; see docs of the CPU rasterizer study), and each time as a multiple ``x_floor``
+  of it;
 * ``traffic_floor_ms`` = (n_splats x 112 B + pixels x 40 B) / the memory bandwidth measured in the
-  same run (best large ``Tensor.copy_``, bytes read + written): the splats' differentiable
+  same run (best large ``Tensor.copy_``, bytes read + written; re-measured like the peak): the splats' differentiable
   parameters (means, quats, scales, opacity, colour: 14 float32) read once and their gradients
   written once, the three images (colour, alpha, depth: 5 float32 per pixel) written once and
   their gradients read once. Any rasterizer moves at least this much, whatever the blended pairs;
@@ -319,13 +321,19 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
     ensure_built()
     rasts = _rasterizers()
     cuda_sync = torch.cuda.synchronize if "gsplat" in rasts else (lambda: None)
-    peak = measure_peak_gflops()
-    gbps = measure_copy_gbps()
-    log(f"fp32 sgemm peak: {peak:.1f} GFLOP/s, copy bandwidth {gbps:.1f} GB/s (torch threads: "
-        f"{torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')})")
+    # the floors use the best peak / bandwidth measured during the run (re-measured before every
+    # row): a busy host only ever lowers a measurement, and a low one would inflate the floor
+    peaks = [measure_peak_gflops()]
+    bws = [measure_copy_gbps()]
+    log(f"fp32 sgemm peak: {peaks[0]:.1f} GFLOP/s, copy bandwidth {bws[0]:.1f} GB/s (torch threads: "
+        f"{torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')}; both re-measured "
+        "before every row, floors use the best of the run)")
     ref_ns_per_pair = 40.0  # prior, replaced by the first measured run
     rows = []
     for scene, (width, n) in ((sc, size) for sc in scenes for size in sizes):
+        if rows:
+            peaks.append(measure_peak_gflops(reps=3))
+            bws.append(measure_copy_gbps(reps=3))
         splats, cam = SCENES[scene](n, width, seed)
         loss = _Loss(cam, 3, seed=seed)
         bg = torch.zeros(3)
@@ -363,9 +371,6 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             for k, project in PROJECTIONS.items():
                 proj_times[k].append(_proj_fwd_bwd(project, splats, cam, out_grads))
         stages = rasts["cpu"].last_stats  # stage times of the last timed cpu run
-        floor_ms = contrib * FLOPS_PER_PAIR / (peak * 1e9) * 1e3
-        traffic_ms = (n * BYTES_PER_SPLAT + cam.width * cam.height * BYTES_PER_PIXEL) / (gbps * 1e9) * 1e3
-        bound_ms = max(floor_ms, traffic_ms)
         ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
         ms_min = {k: 1e3 * min(v) for k, v in times.items()}
         err = None
@@ -381,10 +386,7 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             "speedup_vs_ref": (ms["torch_ref"] / ms["cpu"]) if "torch_ref" in ms else None,
             "proj_ms": {k: 1e3 * statistics.median(v) for k, v in proj_times.items()},
             "proj_ms_min": {k: 1e3 * min(v) for k, v in proj_times.items()},
-            "floor_ms": floor_ms,
-            "x_floor": {k: v / floor_ms if floor_ms > 0 else None for k, v in ms.items()},
-            "traffic_floor_ms": traffic_ms,
-            "x_bound": {k: v / bound_ms if bound_ms > 0 else None for k, v in ms.items()},
+            "pixels": cam.width * cam.height,
             "grad_rel_err": err,
             "contrib_pairs": contrib,
             "eval_pairs_fwd": int(st["eval_fwd"]),
@@ -394,11 +396,32 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             "ref_skipped": None if run_ref else f"estimated {est_s:.0f} s / {est_gb:.1f} GB",
             "cpu_stages_ms": {k: v for k, v in stages.items() if k.endswith("_ms")},
         }
+        set_floors(row, max(peaks), max(bws))  # the best so far; all rows are redone at the end
         rows.append(row)
         log(_format_row(row))
-    return {"peak_gflops": peak, "copy_gbps": gbps, "bytes_per_splat": BYTES_PER_SPLAT,
+    peak, gbps = max(peaks), max(bws)
+    for row in rows:
+        set_floors(row, peak, gbps)
+    return {"peak_gflops": peak, "copy_gbps": gbps, "peak_gflops_samples": peaks, "copy_gbps_samples": bws,
+            "bytes_per_splat": BYTES_PER_SPLAT,
             "bytes_per_pixel": BYTES_PER_PIXEL, "threads": torch.get_num_threads(), "flops_per_pair": FLOPS_PER_PAIR,
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""), "rows": rows}
+
+
+def set_floors(row: dict, peak_gflops: float, copy_gbps: float) -> None:
+    """Set a result row's floors and multiples from its times, blended pairs and size.
+
+    ``floor_ms`` = contrib_pairs x FLOPS_PER_PAIR / peak; ``traffic_floor_ms`` = (n_splats x
+    BYTES_PER_SPLAT + pixels x BYTES_PER_PIXEL) / bandwidth; ``x_floor`` / ``x_bound`` = each
+    rasterizer's median ms / floor_ms / max(floor_ms, traffic_floor_ms).
+    """
+    floor_ms = row["contrib_pairs"] * FLOPS_PER_PAIR / (peak_gflops * 1e9) * 1e3
+    traffic_ms = (row["n_splats"] * BYTES_PER_SPLAT + row["pixels"] * BYTES_PER_PIXEL) / (copy_gbps * 1e9) * 1e3
+    bound_ms = max(floor_ms, traffic_ms)
+    row["floor_ms"] = floor_ms
+    row["x_floor"] = {k: v / floor_ms if floor_ms > 0 else None for k, v in row["ms"].items()}
+    row["traffic_floor_ms"] = traffic_ms
+    row["x_bound"] = {k: v / bound_ms if bound_ms > 0 else None for k, v in row["ms"].items()}
 
 
 def _fmt(x: float | None, spec: str) -> str:
