@@ -247,10 +247,17 @@ def test_slurm_launcher_composes():
     assert launcher["max_num_timeout"] >= 1 and launcher["submitit_folder"].endswith(".submitit/%j")
 
 
+def _installed(module: str) -> bool:
+    """True if ``module`` can be imported; False also when a parent package is missing (find_spec of
+    ``a.b`` imports ``a``: without any Hydra plugin there is no ``hydra_plugins`` namespace)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ModuleNotFoundError:
+        return False
+
+
 @pytest.mark.slow
-@pytest.mark.skipif(
-    importlib.util.find_spec("hydra_plugins.hydra_joblib_launcher") is None, reason="extra [launch] not installed"
-)
+@pytest.mark.skipif(not _installed("hydra_plugins.hydra_joblib_launcher"), reason="extra [launch] not installed")
 def test_joblib_launcher_runs_two_jobs(tmp_path, scene):
     sweep_dir = tmp_path / "sweep"
     p = run_cli(
