@@ -328,6 +328,7 @@ struct Fwd {
   V inv, j00, j02, j11, j12;  // Jacobian
   V n, q[4];         // quaternion norm, normalised quaternion (w, x, y, z)
   V r[3][3];         // rotation
+  V s[3];            // scales
   V m[3][3];         // R S
   V T0[3], T1[3];    // J W
   V u[3], v[3];      // T0 Sigma, T1 Sigma
@@ -380,11 +381,9 @@ inline void fwd_core(const Cam<typename Tr<V>::S>& k, const typename Tr<V>::S* m
   r[2][1] = T(2) * (y * z + w * x);
   r[2][2] = one - T(2) * (x * x + y * y);
   auto& m = f.m;
-  V sv[3];
-  load_rows<V, 3>(scales, sv);
+  load_rows<V, 3>(scales, f.s);
   for (int j = 0; j < 3; ++j) {
-    const V s = sv[j];
-    for (int i = 0; i < 3; ++i) m[i][j] = r[i][j] * s;
+    for (int i = 0; i < 3; ++i) m[i][j] = r[i][j] * f.s[j];
   }
   const V c00 = (m[0][0] * m[0][0] + m[0][1] * m[0][1]) + m[0][2] * m[0][2];
   const V c01 = (m[0][0] * m[1][0] + m[0][1] * m[1][1]) + m[0][2] * m[1][2];
@@ -461,9 +460,7 @@ inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typen
   Fwd<V> f;
   fwd_core<V>(k, means + 3 * i, quats + 4 * i, scales + 3 * i, f);
   {
-    V s3[3];
-    load_rows<V, 3>(scales + 3 * i, s3);
-    const auto fin = finite_probe<V>(f, s3) == V{};
+    const auto fin = finite_probe<V>(f, f.s) == V{};
     for (int l = 0; l < L; ++l) finite[i + l] = mlane(fin, l);
   }
   const V conic[3] = {f.c / f.ds, (-f.b) / f.ds, f.a / f.ds};
@@ -550,8 +547,7 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
                         (gather<VT>(gcn, gi.scn, 2) == zt) &
                         (gather<VT>(gi.dp + gi.sdp * i, gi.sdp, 0) == zt);
     if (all_lanes(zero_g, L)) {
-      const VT s3[3] = {gather<VT>(sc, 3, 0), gather<VT>(sc, 3, 1), gather<VT>(sc, 3, 2)};
-      if (all_lanes(finite_probe<VT>(f, s3) == zt, L)) {
+      if (all_lanes(finite_probe<VT>(f, f.s) == zt, L)) {
         for (int j = 0; j < 4; ++j) scatter<VT>(g_quats + 4 * i, 4, j, zt);
         for (int j = 0; j < 3; ++j) {
           scatter<VT>(g_scales + 3 * i, 3, j, zt);
@@ -597,7 +593,7 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
       mm[p][j] = up(f.m[p][j]);
       rr[p][j] = up(f.r[p][j]);
     }
-  for (int j = 0; j < 3; ++j) s[j] = up(gather<VT>(sc, 3, j));
+  for (int j = 0; j < 3; ++j) s[j] = up(f.s[j]);
   // M = R diag(s)
   VA gr[3][3];
   VA gs[3] = {zero, zero, zero};

@@ -169,6 +169,11 @@ inline uint32_t depth_key(float d) {
   return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
 }
 
+// Threads for n elements split into chunks of at least MIN_SORT_CHUNK (1 .. nt).
+inline int sort_team(int nt, int64_t n) {
+  return static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nt, n / MIN_SORT_CHUNK)));
+}
+
 // Stable LSD radix sort (8-bit digits) of idx by key; both are permuted. Passes whose digit is the
 // same for every element are skipped. Each pass splits the array into nt contiguous chunks: a
 // histogram per chunk, offsets digit-major then chunk-minor (so equal digits keep their order:
@@ -179,15 +184,14 @@ void radix_sort(std::vector<uint32_t>& key, std::vector<int32_t>& idx, int nt) {
   constexpr int PASSES = 32 / BITS;
   const size_t m = key.size();
   if (m == 0) return;
-  nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nt, static_cast<int64_t>(m) / MIN_SORT_CHUNK)));
-  // the digits that vary (a pass over a constant digit moves nothing)
+  nt = sort_team(nt, static_cast<int64_t>(m));
+  // the digits that vary: the bits where some key differs from the first (a pass over a constant
+  // digit moves nothing)
+  uint32_t differ = 0;
+  for (size_t i = 1; i < m; ++i) differ |= key[i] ^ key[0];
   std::vector<int> passes;
-  for (int p = 0; p < PASSES; ++p) {
-    const uint32_t d0 = (key[0] >> (p * BITS)) & (RADIX - 1);
-    bool varies = false;
-    for (size_t i = 1; i < m && !varies; ++i) varies = ((key[i] >> (p * BITS)) & (RADIX - 1)) != d0;
-    if (varies) passes.push_back(p);
-  }
+  for (int p = 0; p < PASSES; ++p)
+    if ((differ >> (p * BITS)) & (RADIX - 1)) passes.push_back(p);
   if (passes.empty()) return;
   std::vector<uint32_t> key2(m);
   std::vector<int32_t> idx2(m);
@@ -241,7 +245,7 @@ void radix_sort(std::vector<uint32_t>& key, std::vector<int32_t>& idx, int nt) {
 template <typename Keep>
 void select_keys(const float* depth, const bool* visible, int64_t n, uint64_t lo, uint64_t hi, const Keep& keep,
                  int nt, std::vector<uint32_t>& key, std::vector<int32_t>& idx) {
-  nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(nt, n / MIN_SORT_CHUNK)));
+  nt = sort_team(nt, n);
   key.resize(static_cast<size_t>(n));  // chunk t compacts into [n t / nt, ...) (branch-free writes)
   idx.resize(static_cast<size_t>(n));
   std::vector<int64_t> kept(nt);
