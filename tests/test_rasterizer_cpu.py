@@ -207,7 +207,7 @@ def test_single_splat_matches_reference_and_known_alpha():
 
 def test_culling_is_exact_and_results_are_deterministic():
     """Exact culling on/off, repeated runs and 1 vs 2 threads give bit-identical outputs and grads."""
-    # enough (splat, tile) pairs (> MIN_PAIRS_PARALLEL = 16384) for the multi-threaded tile loops
+    # enough (splat, tile) pairs (> MIN_PAIRS_PARALLEL) for the multi-threaded tile loops
     splats = random_scene(6000, seed=11, scale_range=(0.005, 0.2))
     cam = random_camera(100, 76, seed=11)
     bg = torch.tensor([0.3, 0.6, 0.9])
@@ -222,6 +222,26 @@ def test_culling_is_exact_and_results_are_deterministic():
             assert torch.equal(getattr(out, name), getattr(out0, name)), name
         for k in ATTRS:
             assert torch.equal(g[k], g0[k]), k
+
+
+def test_lane_culling_at_a_silhouette_is_exact():
+    """The per-vector early-out (skip a half-row whose pixels inside the splat's inflated ellipse
+    have all terminated / all have an earlier last contributor, before the exp) is exact: on the
+    benchmark's object scene (silhouette half-rows that never terminate as a whole) with opacities
+    spread down to just above 1/255, culling on and off give bit-identical images and gradients."""
+    from src.bench.rasterizer import SCENES
+
+    splats, cam = SCENES["object"](20000, 64, 0)
+    g = torch.Generator().manual_seed(0)
+    low = torch.rand(splats.opacities.shape[0], generator=g) < 0.3
+    splats.opacities[low] = (1.0 / 255.0) * (1.0 + 0.05 * torch.rand(int(low.sum()), generator=g))
+    bg = torch.tensor([0.2, 0.5, 0.7])
+    (out0, g0), (out1, g1) = (_render_with_grads(CpuRasterizer(cull=c, count_pairs=True), splats, cam, bg)
+                              for c in (True, False))
+    for name in ("color", "alpha", "depth"):
+        assert torch.equal(getattr(out0, name), getattr(out1, name)), name
+    for k in ATTRS:
+        assert torch.equal(g0[k], g1[k]), k
 
 
 def test_multi_chunk_binning_is_deterministic():

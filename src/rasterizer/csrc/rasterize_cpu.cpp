@@ -31,7 +31,11 @@
 //     ellipse  d^T conic d <= 2 ln(255 o)  (inflated to cover float rounding) on that row are
 //     evaluated; a tile of the rect where no half-row qualifies is not binned at all;
 //   * forward: half-rows whose 8 pixels have all terminated are skipped, and a tile stops when all
-//     its pixels have; backward: half-rows whose last contributor is before the splat are skipped.
+//     its pixels have; backward: half-rows whose last contributor is before the splat are skipped;
+//   * in both, a half-row whose pixels inside the splat's (inflated) ellipse have all terminated
+//     (forward) or all have their last contributor before the splat (backward) is skipped after
+//     evaluating the power only (no exp): at an object's silhouette most half-rows never terminate
+//     as a whole, while the splats behind the surface evaluated there blend nowhere.
 // Skipped (pixel, splat) pairs would have had alpha = 0 (masked), so images and gradients are
 // bit-identical with culling on or off (tested).
 //
@@ -364,16 +368,24 @@ inline uint32_t span_mask(const RowSpans& sp, float tx0) {
 struct Eval {
   VF dx, power, G, alpha;
 };
-inline Eval eval_splat(const Geo& g, VF px, float dy) {
+inline Eval eval_power(const Geo& g, VF px, float dy) {
   Eval e;
   e.dx = px - set1(g.mx);
   const float nbdy = -g.b * dy;
   const float hcdy2 = ((-0.5f * g.c) * dy) * dy;
   VF t = fmadd(set1(-0.5f * g.a), e.dx, set1(nbdy));
   e.power = fmadd(t, e.dx, set1(hcdy2));
+  return e;
+}
+inline void eval_alpha(const Geo& g, Eval& e) {
   e.G = vexp(e.power);
   e.alpha = vmin(set1(g.o) * e.G, set1(ALPHA_MAX));
-  return e;
+}
+// Lanes that may blend: power <= 0 inside the (inflated) alpha >= 1/255 ellipse Q <= thr, i.e.
+// power >= -thr / 2; a superset of (power <= 0) & (alpha >= 1/255), so a vector with none is skipped exactly.
+inline VM may_blend(const Eval& e, VF neg_half_thr) {
+  const VF zf = zero();
+  return (e.power <= zf) & (e.power >= neg_half_thr);
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -779,15 +791,19 @@ void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, i
     const Geo& g = geo[gi];
     const float* f = NFT == 4 ? g.f : feat + static_cast<int64_t>(gi) * NF;
     const VI jv = iset1(static_cast<int32_t>(jbase + jl));
+    const VF nht = set1(-0.5f * g.thr);
     do {
       const int hr = __builtin_ctz(rows);
       rows &= rows - 1;
       const int h = hr >> 4, r = hr & 15;
       const int p0 = r * TILE + 8 * h;
       const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
-      const Eval e = eval_splat(g, px_h[h], dy);
+      Eval e = eval_power(g, px_h[h], dy);
       const VM dn = mload(done + p0);
-      const VM m = (e.power <= zf) & (e.alpha >= amin) & andnot(dn, all);
+      const VM live = andnot(dn, all);
+      if (!movemask(may_blend(e, nht) & live)) continue;
+      eval_alpha(g, e);
+      const VM m = (e.power <= zf) & (e.alpha >= amin) & live;
       const VF Tv = load(T + p0);
       const VF testT = Tv * (one - e.alpha);
       const VM term = m & (testT < tmin);
@@ -919,14 +935,18 @@ int64_t backward_tile(const Geo* __restrict__ geo, const float* __restrict__ fea
     for (int k = 0; k < R; ++k) accv[k] = zf;
     const VI jm1 = iset1(jl - 1);
     const VF o = set1(g.o);
+    const VF nht = set1(-0.5f * g.thr);
     do {
       const int hr = __builtin_ctz(rows);
       rows &= rows - 1;
       const int h = hr >> 4, r = hr & 15;
       const int p0 = r * TILE + 8 * h;
       const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
-      const Eval e = eval_splat(g, px_h[h], dy);
-      const VM m = (e.power <= zf) & (e.alpha >= amin) & igt(iload(last + p0), jm1);
+      Eval e = eval_power(g, px_h[h], dy);
+      const VM later = igt(iload(last + p0), jm1);
+      if (!movemask(may_blend(e, nht) & later)) continue;
+      eval_alpha(g, e);
+      const VM m = (e.power <= zf) & (e.alpha >= amin) & later;
       const VF am = select(m, e.alpha, zf);
       const VF rcp = one / (one - am);
       const VF Tj = load(T + p0) * rcp;  // transmittance before this splat
