@@ -137,8 +137,9 @@ class CpuRasterizer(Rasterizer):
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
-            alpha >= 1/255 before termination), ``eval_fwd``/``eval_bwd`` (evaluated pixel-splat
-            pairs, 8 per vector), ``tile_pairs`` (binned (splat, tile) pairs), ``depth_windows``
+            alpha >= 1/255 before termination), ``eval_fwd``/``eval_bwd`` (pixel-splat pairs whose
+            alpha was computed, 8 per vector; vectors skipped after their power are not counted),
+            ``tile_pairs`` (binned (splat, tile) pairs), ``depth_windows``
             and stage times in ms (``sort_ms``: depth sorts and the scan selecting the splats
             behind the first window; ``pack_ms``: raw per-splat records with their tile
             rects, per-tile state, concatenating the windows' tile lists and writing the images;
