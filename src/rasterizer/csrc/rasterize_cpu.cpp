@@ -382,7 +382,8 @@ inline void eval_alpha(const Geo& g, Eval& e) {
   e.alpha = vmin(set1(g.o) * e.G, set1(ALPHA_MAX));
 }
 // Lanes that may blend: power <= 0 inside the (inflated) alpha >= 1/255 ellipse Q <= thr, i.e.
-// power >= -thr / 2; a superset of (power <= 0) & (alpha >= 1/255), so a vector with none is skipped exactly.
+// power >= -thr / 2. alpha >= 1/255 implies both, so the blending mask is this & (alpha >= 1/255)
+// and a vector with no such lane is skipped exactly.
 inline VM may_blend(const Eval& e, VF neg_half_thr) {
   const VF zf = zero();
   return (e.power <= zf) & (e.power >= neg_half_thr);
@@ -800,10 +801,10 @@ void forward_tile(const Geo* __restrict__ geo, const float* __restrict__ feat, i
       const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
       Eval e = eval_power(g, px_h[h], dy);
       const VM dn = mload(done + p0);
-      const VM live = andnot(dn, all);
-      if (!movemask(may_blend(e, nht) & live)) continue;
+      const VM cand = may_blend(e, nht) & andnot(dn, all);  // live pixels that may blend
+      if (!movemask(cand)) continue;
       eval_alpha(g, e);
-      const VM m = (e.power <= zf) & (e.alpha >= amin) & live;
+      const VM m = cand & (e.alpha >= amin);
       const VF Tv = load(T + p0);
       const VF testT = Tv * (one - e.alpha);
       const VM term = m & (testT < tmin);
@@ -943,10 +944,11 @@ int64_t backward_tile(const Geo* __restrict__ geo, const float* __restrict__ fea
       const int p0 = r * TILE + 8 * h;
       const float dy = (fy0 + static_cast<float>(r) + 0.5f) - g.my;
       Eval e = eval_power(g, px_h[h], dy);
-      const VM later = igt(iload(last + p0), jm1);
-      if (!movemask(may_blend(e, nht) & later)) continue;
+      // pixels whose last contributor is this splat or later that may blend
+      const VM cand = may_blend(e, nht) & igt(iload(last + p0), jm1);
+      if (!movemask(cand)) continue;
       eval_alpha(g, e);
-      const VM m = (e.power <= zf) & (e.alpha >= amin) & later;
+      const VM m = cand & (e.alpha >= amin);
       const VF am = select(m, e.alpha, zf);
       const VF rcp = one / (one - am);
       const VF Tj = load(T + p0) * rcp;  // transmittance before this splat
