@@ -1323,16 +1323,21 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     }
   }
   const Stamp t1 = now();
-  // Per-splat reduction over its tiles in a fixed (tile) order: each thread owns a range of
-  // rows (depth order) and walks its run of the processed slots of every tile in tile order
-  // (sequential reads), accumulating its own splats' slot records into their output rows
-  // (original order); every splat's sum is thus taken in the same order for any thread count (deterministic, no
-  // atomics). Then the sums are mapped to the gradients in place. Outputs (original order; zero
-  // for splats not visible or never binned): g_geo [N, 6] = [dL/dmeans2d (2), dL/dconic (3),
-  // dL/ddepth], g_opacity [N], g_color [N, NF - 1] (separate contiguous tensors: autograd takes
-  // the last two as they are, without copies).
+  // Per-splat reduction over its tiles in a fixed (tile) order, in three phases (barriers between):
+  //  1. each thread owns a range of rows (depth order) and walks its run of the processed slots of
+  //     every tile in tile order (sequential reads), accumulating its rows' slot records into a
+  //     row-order buffer sums [M, R] (each tile's run visits rows in increasing order), then maps
+  //     them to gradients there (its rows, reading their records in order);
+  //  2. rows of the original order: row_of[s] = the row of splat s, or -1 if it has none;
+  //  3. each thread writes its share of the outputs in the original order (sequential writes),
+  //     gathering sums[row_of[s]] (prefetched reads) or zeros.
+  // Every splat's sum is taken in the same order for any thread count (deterministic, no atomics),
+  // and the outputs are written once, not read-modified-written per slot at random. Outputs
+  // (original order; zero for splats not visible or never binned): g_geo [N, 6] = [dL/dmeans2d
+  // (2), dL/dconic (3), dL/ddepth], g_opacity [N], g_color [N, NF - 1] (separate contiguous
+  // tensors: autograd takes the last two as they are, without copies).
   const int C = NF - 1;
-  auto g_geo = at::empty({N, 6}, at::kFloat);  // zeroed below, each thread its share of the rows
+  auto g_geo = at::empty({N, 6}, at::kFloat);
   auto g_op = at::empty({N}, at::kFloat);
   auto g_col = at::empty({N, C}, at::kFloat);
   {
@@ -1342,20 +1347,20 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
     float* oo = g_op.data_ptr<float>();
     float* oc = g_col.data_ptr<float>();
     const float* recp = rec;
+    // sums [M, R] per row, layout of the records: [means2d (2), conic (3), opacity, features (NF;
+    // depth last)]; after phase 1: [dL/dmeans2d (2), dL/dconic (3), dL/dopacity, dL/dfeatures]
+    thread_local Scratch<float> sum_scratch;
+    float* const sums = sum_scratch.get(static_cast<size_t>(std::max<int64_t>(M, 1)) * R);
+    thread_local Scratch<int32_t> row_scratch;
+    int32_t* const row_of = row_scratch.get(static_cast<size_t>(std::max<int64_t>(N, 1)));
     const int nth_red = P < MIN_PAIRS_PARALLEL ? 1 : nth;
 #pragma omp parallel num_threads(nth_red)
     {
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-      {  // zero the outputs: this thread's share of the rows (original order)
-        const int64_t z0 = N * t / nt, z1 = N * (t + 1) / nt;
-        std::fill(og + z0 * 6, og + z1 * 6, 0.0f);
-        std::fill(oo + z0, oo + z1, 0.0f);
-        std::fill(oc + z0 * C, oc + z1 * C, 0.0f);
-      }
-#pragma omp barrier
-      const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;
-      // partial sums accumulate in the splat's (zeroed) output rows, then are mapped in place;
-      // record layout: [means2d (2), conic (3), opacity, features (NF; depth last)]
+      const int64_t lo = M * t / nt, hi = M * (t + 1) / nt;  // this thread's rows
+      const int64_t s0 = N * t / nt, s1 = N * (t + 1) / nt;  // and splats (original order)
+      std::fill(sums + lo * R, sums + hi * R, 0.0f);
+      std::fill(row_of + s0, row_of + s1, -1);
       for (int tile = 0; tile < T; ++tile) {
         // processed slots; a tile list holds rows in increasing (depth) order, so this thread's
         // rows [lo, hi) are one contiguous run of it
@@ -1363,29 +1368,45 @@ std::vector<at::Tensor> backward(at::Tensor grad_color, at::Tensor grad_alpha, a
         const int32_t* end = first + nproc[tile];
         const int32_t* b0 = std::lower_bound(first, end, static_cast<int32_t>(lo));
         const int32_t* b1 = std::lower_bound(b0, end, static_cast<int32_t>(hi));  // rows < 2^31
-        for (int64_t slot = b0 - tl, s1 = b1 - tl; slot < s1; ++slot) {
-          const int64_t i = tl[slot];
+        for (int64_t slot = b0 - tl, e = b1 - tl; slot < e; ++slot) {
           const float* r = recp + slot * R;
-          const int64_t s = srcp[i];
-          float* dg = og + s * 6;
-          for (int q = 0; q < 5; ++q) dg[q] += r[q];
-          dg[5] += r[6 + C];
-          oo[s] += r[5];
-          float* dc = oc + s * C;
-          for (int q = 0; q < C; ++q) dc[q] += r[6 + q];
+          float* acc = sums + static_cast<int64_t>(tl[slot]) * R;
+          for (int q = 0; q < R; ++q) acc[q] += r[q];
         }
       }
-      for (int64_t i = lo; i < hi; ++i) {
-        if (srcp[i] < 0) continue;  // unused row (the splat was never binned)
+      for (int64_t i = lo; i < hi; ++i) {  // sums of power derivatives -> dL/dmeans2d, dL/dconic
+        if (srcp[i] < 0) continue;  // unused row (the splat was never binned): geo unset
         const Geo& g = gp[i];
-        const int64_t s = srcp[i];
-        float* o = og + s * 6;
-        const float s0 = o[0], s1 = o[1];
-        o[0] = g.a * s0 + g.b * s1;
-        o[1] = g.b * s0 + g.c * s1;
+        float* o = sums + i * R;
+        const float d0 = o[0], d1 = o[1];
+        o[0] = g.a * d0 + g.b * d1;
+        o[1] = g.b * d0 + g.c * d1;
         o[2] = -0.5f * o[2];
         o[3] = -o[3];
         o[4] = -0.5f * o[4];
+      }
+#pragma omp barrier
+#pragma omp for schedule(static)
+      for (int64_t i = 0; i < M; ++i)
+        if (srcp[i] >= 0) row_of[srcp[i]] = static_cast<int32_t>(i);  // after every thread's fill
+      // implicit barrier
+      for (int64_t s = s0; s < s1; ++s) {
+        if (s + PREFETCH < s1 && row_of[s + PREFETCH] >= 0)
+          __builtin_prefetch(sums + static_cast<int64_t>(row_of[s + PREFETCH]) * R);
+        const int32_t i = row_of[s];
+        float* dg = og + s * 6;
+        float* dc = oc + s * C;
+        if (i < 0) {  // not visible or never binned
+          std::fill(dg, dg + 6, 0.0f);
+          oo[s] = 0.0f;
+          std::fill(dc, dc + C, 0.0f);
+          continue;
+        }
+        const float* o = sums + static_cast<int64_t>(i) * R;
+        for (int q = 0; q < 5; ++q) dg[q] = o[q];
+        dg[5] = o[6 + C];
+        oo[s] = o[5];
+        for (int q = 0; q < C; ++q) dc[q] = o[6 + q];
       }
     }
   }
