@@ -19,7 +19,7 @@ import os
 # set before torch loads the OpenMP runtime; an explicit user setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 # ... after a short spin: a passive wait alone costs a futex sleep and wake-up per parallel region
-# or barrier (~30-60 us on these VMs, ~28 per render: 20 % of a 10 k-splat render), while ~1 000
+# or barrier (~30-60 us on these VMs, ~28 per render: ~15 % of a 10 k-splat render), while ~1 000
 # spins (a few us) catch most of them and waste little when the partner is descheduled (two renders
 # sharing 2 cores: within 10 % of the pure passive policy; 20 000 spins: 2.5x slower). libgomp only;
 # not applied when the user chose another wait policy.

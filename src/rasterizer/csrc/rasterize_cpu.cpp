@@ -74,7 +74,7 @@ constexpr int NHR = 32;            // half-rows (8-pixel vectors) per tile
 constexpr float ALPHA_MAX = 0.99f;
 constexpr float ALPHA_MIN = 1.0f / 255.0f;
 constexpr float T_MIN = 1e-4f;
-constexpr int PREFETCH = 8;  // splats ahead in a tile list
+constexpr int PREFETCH = 8;  // splats ahead in a tile list (and in the gradient reduction's gather)
 constexpr int64_t MIN_PAIRS_PARALLEL = 1024;  // fewer (splat, tile) pairs: one thread (~0.1 ms of work)
 constexpr int64_t MIN_SORT_CHUNK = 16384;  // depth sort / key selection: elements per thread at least
 // Depth windows of the forward: the first holds ~max(WINDOW_MIN, M / WINDOW_FIRST_DIV) of the M
