@@ -4,21 +4,17 @@ Subcommands are registered in :data:`SUBCOMMANDS` (name -> ``main(argv) -> exit 
 ``training`` entry next to ``rasterizer``. Modules are imported lazily so one subcommand's imports
 don't slow down another.
 
-``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` here (set before torch is imported; export
+``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` with a short spin (``GOMP_SPINCOUNT=1000``), set by the
+package (``src/__init__.py``, imported before this module and before torch; export
 ``OMP_WAIT_POLICY=ACTIVE`` to override): on a shared, oversubscribed machine OpenMP threads that
-spin at barriers while their partner is descheduled made 2-thread renders 10-20x slower. The
-package (``src/__init__.py``) sets the same default, with a short spin (``GOMP_SPINCOUNT=1000``)
-before the passive wait.
+spin at barriers while their partner is descheduled made 2-thread renders 10-20x slower.
 """
 
 from __future__ import annotations
 
 import importlib
-import os
 import sys
 from collections.abc import Callable
-
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def _lazy(module: str, func: str = "main") -> Callable[[list[str]], int]:
