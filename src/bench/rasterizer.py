@@ -23,8 +23,8 @@ with gsplat installed, ``gsplat``, with interleaved repetitions in one process. 
   splats' differentiable parameters (means, quats, scales, opacity, colour: 14 float32) read once
   and their gradients written once, the three images (colour, alpha, depth: 5 float32 per pixel)
   written once and their gradients read once. Any rasterizer moves at least this much, whatever
-  the blended pairs; ``x_bound`` = each time / max(floor_ms, traffic_floor_ms), the distance from the larger of
-  the two floors (not the issue's target, which is ``x_floor``);
+  the blended pairs; ``x_bound`` = each time / max(floor_ms, traffic_floor_ms), the distance from
+  the larger of the two floors (not the issue's target, which is ``x_floor``);
 * ``speedup_vs_ref`` (median torch_ref / median cpu) and ``grad_rel_err``, the worst
   ||g_cpu - g_ref|| / ||g_ref|| over means, scales, quats, opacities and colours.
 
