@@ -1,8 +1,8 @@
 """``python -m src.bench <subcommand> [args]``.
 
-Subcommands are registered in :data:`SUBCOMMANDS` (name -> ``main(argv) -> exit code``); add e.g. a
-``training`` entry next to ``rasterizer``. Modules are imported lazily so one subcommand's imports
-don't slow down another.
+Subcommands are registered in :data:`SUBCOMMANDS` (name -> ``main(argv) -> exit code``):
+``rasterizer`` (a full run writes ``sweeps/results/bench/rasterizer.json`` and ``.png``) and
+``training``. Modules are imported lazily so one subcommand's imports don't slow down another.
 
 ``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` with a short spin (``GOMP_SPINCOUNT=1000``), set by the
 package (``src/__init__.py``, imported before this module and before torch; export

@@ -3,7 +3,7 @@
 One panel per scene. x: the (image width, splat count) sizes in run order; y: milliseconds for one
 forward + backward (log scale). Drawn per rasterizer: its median time (markers, labelled with the
 multiple of the blended-pairs floor for ``cpu``); and the floors of the same run: the blended-pairs
-floor (``floor_ms``), the issue's target of 30x that floor, and the memory-traffic floor
+floor (``floor_ms``), the target of 30x that floor, and the memory-traffic floor
 (``traffic_floor_ms``, when present). See :mod:`src.bench.rasterizer` for their definitions.
 Uses matplotlib's object API with the Agg canvas (no global backend is changed).
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from matplotlib.figure import Figure
 
-TARGET_X_FLOOR = 30.0  # the issue's target: within 30x of the blended-pairs floor
+TARGET_X_FLOOR = 30.0  # the target: within 30x of the blended-pairs floor
 STYLES = {"cpu": ("o", "tab:blue"), "cpu_torch_proj": ("s", "tab:cyan"), "torch_ref": ("x", "tab:orange"),
           "gsplat": ("D", "tab:green")}
 
