@@ -1,7 +1,10 @@
 """Tables (and charts) from sweep results: ``python -m src.tables SWEEP_DIR [SWEEP_DIR...]``.
 
 Reads ``SWEEP_DIR/multirun.yaml`` (its ``report:`` block) and every ``SWEEP_DIR/**/metrics.json``,
-prints the tables, and optionally writes ``OUT/table.{md,tex,csv}`` and ``chart.{png,svg}``.
+prints the tables, and optionally writes ``OUT/table.{md,tex,csv}``, ``chart.{png,svg}`` (speed
+against accuracy) and ``curves.{png,svg}`` (learning curves, when the records carry a ``curve``).
+A bare ``--out`` writes to ``sweeps/results/<sweep name>/`` (the name of the sweep's config file,
+read from its ``multirun.yaml``), the place where the current result of each sweep is kept.
 Conventions and the record contract: :mod:`src.reporting`.
 
 Exit codes: 0 success; 1 the chart could not be drawn; 2 bad usage or nothing to tabulate (a sweep
@@ -16,6 +19,8 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
+import yaml
+
 from src.reporting import load, make_tables, resolve_spec
 from src.reporting.aggregate import build_report
 from src.reporting.collect import find_metrics_files
@@ -23,6 +28,28 @@ from src.reporting.render import FORMATS, render
 from src.utils.record import atomic_write_text
 
 __all__ = ["main", "make_tables"]
+
+
+RESULTS_ROOT = Path(__file__).resolve().parents[1] / "sweeps" / "results"
+_DEFAULT_OUT = Path("<sweeps/results/SWEEP>")  # sentinel of a bare --out
+
+
+def sweep_name(sweep_dir: Path) -> str | None:
+    """The sweep's config name (``hydra.job.config_name`` in ``SWEEP_DIR/multirun.yaml``), or None."""
+    try:
+        data = yaml.safe_load((sweep_dir / "multirun.yaml").read_text())
+        name = data["hydra"]["job"]["config_name"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    return str(name) if name else None
+
+
+def default_out(sweep_dirs: Sequence[Path]) -> Path | None:
+    """``sweeps/results/<name>`` when every sweep directory names the same sweep, else None."""
+    names = {sweep_name(d) for d in sweep_dirs}
+    if len(names) != 1 or None in names:
+        return None
+    return RESULTS_ROOT / str(names.pop())
 
 
 def _csv_list(text: str) -> tuple[str, ...]:
@@ -37,7 +64,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("sweep_dirs", nargs="+", type=Path, metavar="SWEEP_DIR")
     parser.add_argument("--format", choices=FORMATS, default="md", help="output format (default: md)")
-    parser.add_argument("--out", type=Path, help="also write OUT/table.<format> (and the chart here)")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        nargs="?",
+        const=_DEFAULT_OUT,
+        help="also write OUT/table.<format> (and the charts there); bare: sweeps/results/<sweep name>/",
+    )
     parser.add_argument("--rows", type=_csv_list, help="row keys, comma-separated dotted paths")
     parser.add_argument("--cols", type=_csv_list, help="column keys; '--cols=' → one column per metric")
     parser.add_argument("--metrics", type=_csv_list, help="metrics, comma-separated (one table each)")
@@ -49,7 +82,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="append the paper's rows for systems not run: a table (C.1 … C.6) or, bare, chosen by dataset",
     )
     parser.add_argument("--no-quoted", action="store_true", help="drop the report block's quoted paper rows")
-    parser.add_argument("--chart", action="store_true", help="write speed × accuracy chart.png / chart.svg")
+    parser.add_argument(
+        "--chart",
+        action="store_true",
+        help="write chart.png/.svg (speed against accuracy) and, with curves in the records, curves.png/.svg",
+    )
     return parser.parse_args(argv)
 
 
@@ -62,6 +99,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         if not find_metrics_files(sweep_dir):
             print(f"error: no metrics.json under {sweep_dir} (empty or unfinished sweep?)", file=sys.stderr)
+            return 2
+
+    if args.out == _DEFAULT_OUT:
+        args.out = default_out(args.sweep_dirs)
+        if args.out is None:
+            print("error: a bare --out needs sweep directories of one named sweep (multirun.yaml); "
+                  "pass --out DIR", file=sys.stderr)  # fmt: skip
             return 2
 
     collection = load(args.sweep_dirs)
@@ -87,13 +131,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         atomic_write_text(path, text)
         print(f"wrote {path}", file=sys.stderr)
     if args.chart:
-        from src.reporting.chart import make_chart  # matplotlib is only imported when charting
+        from src.reporting.chart import make_chart, make_curves  # matplotlib only when charting
 
+        out_dir = args.out or args.sweep_dirs[0]
         try:
-            paths = make_chart(collection.records, spec, args.out or args.sweep_dirs[0])
+            paths = make_chart(collection.records, spec, out_dir)
         except ValueError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
+        paths += make_curves(collection.records, spec, out_dir)
         for path in paths:
             print(f"wrote {path}")
     return 0

@@ -16,7 +16,8 @@ import pytest
 
 from src.reporting import make_report, make_tables, paper_numbers
 from src.reporting.aggregate import ReportSpec
-from src.reporting.chart import Point, pareto_front
+from src.reporting.chart import Point, chart_data, chart_from_table_md, make_curves, pareto_front
+from src.reporting.table_md import parse_cell, parse_tables
 from src.tables import main
 
 REPO = Path(__file__).resolve().parents[1]
@@ -442,3 +443,72 @@ def test_chart_training_time_includes_first_stage_and_capacity_search():
     plain = RunRecord({"status": "ok", "metrics": {"train_s": 10.0}})
     full = RunRecord({"status": "ok", "metrics": {"train_s": 10.0, "stage1_train_s": 5.0, "capacity_search_s": 2.5}})
     assert _train_time(plain) == 10.0 and _train_time(full) == 17.5
+
+
+def test_chart_panels_per_scene_and_failed_runs(sweep: Path) -> None:
+    from src.reporting import load
+
+    write_run(sweep, "other_scene", scene="ship", psnr=30.0, train_s=50.0)
+    data = chart_data(load([sweep]).records, ReportSpec())
+    assert {p.panel for p in data.points["psnr"]} == {"lego", "ship"}
+    gs = next(p for p in data.points["psnr"] if p.row == "gs3d" and p.col == "n_views=4" and p.panel == "lego")
+    assert gs.n == 2 and gs.x == pytest.approx(100.5) and gs.y == pytest.approx(24.05)
+    assert data.failed["gs3d"] == (1, 7) and data.failed["mip3dgs"] == (3, 6)
+    assert sum(1 for panel, _, _ in data.failed_x if panel == "lego") == 4
+
+
+def test_chart_scene_as_row_key_is_a_panel_not_a_method(tmp_path: Path) -> None:
+    from src.reporting import load
+
+    for i, scene in enumerate(("a", "b")):
+        write_run(tmp_path, str(i), scene=scene, psnr=20.0 + i, train_s=10.0)
+    data = chart_data(load([tmp_path]).records, ReportSpec(rows=("method", "keys.scene")))
+    assert sorted((p.panel, p.row) for p in data.points["psnr"]) == [("a", "gs3d"), ("b", "gs3d")]
+
+
+def test_learning_curves_only_with_a_curve(sweep: Path, tmp_path: Path) -> None:
+    from src.reporting import load
+
+    assert make_curves(load([sweep]).records, ReportSpec(), tmp_path / "none") == []
+    run = write_run(tmp_path / "c", "0", psnr=20.0, train_s=10.0)
+    record = json.loads((run / "metrics.json").read_text())
+    record["curve"] = [{"iteration": i * 100, "wall_s": 1.0 + i, "psnr": 15.0 + i} for i in range(5)]
+    (run / "metrics.json").write_text(json.dumps(record))
+    failed = write_run(tmp_path / "c", "1", seed=1, status="failed", reason="divergence")
+    record = json.loads((failed / "metrics.json").read_text())
+    record["curve"] = [{"iteration": 0, "wall_s": 1.0, "psnr": 14.0}, {"iteration": 100, "wall_s": 2.0,
+                                                                        "psnr": float("nan")}]
+    (failed / "metrics.json").write_text(json.dumps(record))
+    out = tmp_path / "out"
+    assert main([str(tmp_path / "c"), "--chart", "--out", str(out)]) == 0
+    assert (out / "curves.png").stat().st_size > 1000 and (out / "curves.svg").exists()
+    assert (out / "chart.png").exists()
+
+
+def test_table_md_round_trip_and_chart_from_table(sweep: Path, tmp_path: Path) -> None:
+    text = make_tables([sweep], {"metrics": ["psnr", "train_s"]})
+    tables = {t.metric: t for t in parse_tables(text)}
+    assert set(tables) == {"psnr", "train_s"} and tables["psnr"].higher_is_better
+    assert not tables["train_s"].higher_is_better
+    psnr = tables["psnr"]
+    assert psnr.key_names == ("method",) and psnr.cols == ("n_views=4", "n_views=8")
+    cell = psnr.cell(("splatfields3d",), "n_views=8")
+    assert cell is not None and cell.mean == pytest.approx(27.1) and cell.n == 3
+    assert psnr.cell(("mip3dgs",), "n_views=8") is None
+    data = chart_from_table_md(text)
+    assert data.failed["mip3dgs"] == (3, 6) and len(data.points["psnr"]) == 5
+    assert parse_cell("_15.83_ ± 0.04 (n=2)") == parse_cell("15.83³ ± 0.04 (n=2)")
+    assert parse_cell("–") is None
+    with pytest.raises(ValueError, match="nothing to chart"):
+        chart_from_table_md(make_tables([sweep], {"metrics": ["psnr"]}))
+
+
+def test_bare_out_writes_to_the_sweeps_results_name(sweep: Path, monkeypatch: pytest.MonkeyPatch,
+                                                    tmp_path: Path) -> None:  # fmt: skip
+    import src.tables
+
+    monkeypatch.setattr(src.tables, "RESULTS_ROOT", tmp_path / "results")
+    assert main([str(sweep), "--out"]) == 2  # no multirun.yaml: no name
+    (sweep / "multirun.yaml").write_text("hydra:\n  job:\n    config_name: blender_views\n")
+    assert main([str(sweep), "--out", "--metrics", "psnr"]) == 0
+    assert (tmp_path / "results" / "blender_views" / "table.md").exists()
