@@ -7,6 +7,7 @@ evaluates and writes the run record ``metrics.json`` (atomically, also when the 
 from __future__ import annotations
 
 import logging
+import sys
 import time
 import traceback
 from pathlib import Path
@@ -14,15 +15,21 @@ from pathlib import Path
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
+from src.data.base import DatasetError
+from src.data.validate import validate_scene
 from src.init.stage1 import ensure_first_stage
 from src.io.ply import write_baked_ply
-from src.trainer.guard import DivergenceError
-from src.utils.instantiate import build
+from src.trainer.guard import DivergenceError, DivergenceGuard
+from src.trainer.trainer import CheckpointError
+from src.utils.instantiate import ConfigError, build, check_targets
 from src.utils.memory import peak_memory_mb
-from src.utils.record import env_info, read_json, write_json
+from src.utils.record import atomic_write_text, env_info, read_json, write_json
+from src.utils.runlock import RunDirLocked, RunLock
 from src.utils.seed import seed_everything
+from src.utils.validate import ConfigValueError, validate_run_config
 
 log = logging.getLogger("src.run")
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -52,11 +59,43 @@ def hydra_context() -> dict:
     return {"choices": choices, "overrides": list(hc.overrides.task), "output_dir": hc.runtime.output_dir}
 
 
+#: Errors in what the user gave (config values, data files, checkpoints): one line, no traceback.
+INPUT_ERRORS = (ConfigError, ConfigValueError, DatasetError, CheckpointError, RunDirLocked)
+
+
+def save_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
+    """Write ``<run>/.hydra/{config,hydra,overrides}.yaml`` (atomically) for the current Hydra job.
+
+    Hydra's own copy is switched off (``hydra.output_subdir: null`` in conf/config.yaml) so that these
+    files are written only by the process holding the run directory's lock: a refused second writer
+    leaves the running job's files untouched.
+    """
+    try:
+        hc = HydraConfig.get()
+    except ValueError:
+        return
+    out = run_dir / ".hydra"
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.yaml", OmegaConf.to_yaml(cfg))
+    atomic_write_text(out / "hydra.yaml", OmegaConf.to_yaml(OmegaConf.create({"hydra": hc})))
+    atomic_write_text(out / "overrides.yaml", OmegaConf.to_yaml(hc.overrides.task))
+
+
 def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
-    """Train and evaluate one configuration; returns the run record (also written to metrics.json)."""
+    """Train and evaluate one configuration; returns the run record (also written to metrics.json).
+
+    The run directory is locked for the whole run (:class:`src.utils.runlock.RunLock`): a second
+    process writing to it is refused with :class:`RunDirLocked` before it changes anything there.
+    """
     ctx = hydra_context()
     run_dir = Path(run_dir or ctx["output_dir"] or cfg.paths.output_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    with RunLock(run_dir):
+        return _run_locked(cfg, run_dir, ctx)
+
+
+def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
+    """:func:`run`'s body, with the run directory's lock held."""
     metrics_path = run_dir / "metrics.json"
     previous = read_json(metrics_path)
     # Resume safety (sweeps/README.md, "Resume"): a re-used run dir must hold the SAME job. A sweep
@@ -69,7 +108,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
                 f"{run_dir} holds another run (overrides {before}); this job has {now}. Re-use a run/sweep "
                 "dir only with the same command; to extend a sweep use a new hydra.sweep.dir and pass both "
                 "directories to src.tables.")
-    if cfg.get("skip_if_done", True) and previous and previous.get("status") == "ok":
+    fresh = not cfg.trainer.get("resume", True)  # trainer.resume=false: train again from scratch
+    if cfg.get("skip_if_done", True) and not fresh and previous and previous.get("status") == "ok":
         log.info("%s already says status ok: skipping (set skip_if_done=false to re-run)", metrics_path)
         return previous
     # A run killed (SIGKILL) inside an atomic write leaves its temporary file (.NAME.XXXX.tmp, see
@@ -91,14 +131,21 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
         "env": env_info(device), "run_dir": str(run_dir),
     }
+    if ctx["output_dir"] is not None:
+        save_hydra_files(cfg, run_dir)
     # Written now with status "running" (never "ok" before the end): a killed run leaves this record,
     # so tables list it as not finished and a re-run can check it is the same job (above).
     write_json(metrics_path, record)
     t0 = time.perf_counter()
     try:
+        check_targets(cfg)  # every _target_ at every depth, before anything is built
+        validate_run_config(cfg)
         generator = seed_everything(cfg.seed)
         dataset = build(cfg.dataset)
-        scene = dataset.load().to(device)
+        scene = dataset.load()
+        validate_scene(scene, str(cfg.dataset.root))
+        check_combination(cfg, scene)
+        scene = scene.to(device)
         record["keys"]["scene"] = scene.name
         record["views"] = scene.view_ids
         stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
@@ -116,6 +163,9 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
         if cfg.trainer.get("tensorboard", False):
             evaluator.log_images(run_dir, model, rasterizer, scene, step=int(cfg.trainer.iterations))
+        guard = DivergenceGuard(**OmegaConf.to_container(cfg.trainer.get("guard") or {}, resolve=True))
+        background_psnr = guard.check_final(model, rasterizer, scene, ev["psnr"], int(cfg.trainer.iterations))
+        ev["background_psnr"] = background_psnr
         per_view = ev.pop("per_view_test")
         per_frame = ev.pop("per_frame", None)
         unavailable = ev.pop("unavailable_metrics", None)
@@ -140,8 +190,12 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
         log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
                  record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
     except DivergenceError as e:
-        record.update(status="failed", reason=f"divergence: {e}", error=str(e))
+        kind = "collapse" if str(e).startswith("collapse:") else "divergence"
+        record.update(status="failed", reason=str(e) if kind == "collapse" else f"divergence: {e}", error=str(e))
         log.error("run diverged: %s", e)
+    except INPUT_ERRORS as e:
+        record.update(status="failed", reason=f"invalid input: {e}", error=f"{type(e).__name__}: {e}")
+        raise
     except BaseException as e:
         record.update(status="failed", error=f"{type(e).__name__}: {e}",
                       traceback=traceback.format_exc(limit=20))
@@ -173,7 +227,7 @@ def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, gener
 
 
 # Overrides that do not change a run's results; a re-run may add or change them (resume check above).
-_NEUTRAL_OVERRIDES = ("skip_if_done", "threads", "trainer.progress", "trainer.log_every")
+_NEUTRAL_OVERRIDES = ("skip_if_done", "threads", "trainer.progress", "trainer.log_every", "trainer.resume")
 
 
 def _identity_overrides(overrides: list[str]) -> list[str]:
@@ -181,9 +235,62 @@ def _identity_overrides(overrides: list[str]) -> list[str]:
     return [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in _NEUTRAL_OVERRIDES]
 
 
+def check_combination(cfg: DictConfig, scene) -> None:
+    """Refuse, in one line, an experiment that models motion on a scene that has none."""
+    dynamic_model = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or str(
+        OmegaConf.select(cfg, "model._target_", default="")).endswith("DeformableGaussians")
+    if dynamic_model and not scene.is_dynamic:
+        raise ConfigError(
+            f"experiment {cfg.get('experiment_name', 'default')!r} ({cfg.method}) models motion, but dataset "
+            f"{scene.name!r} ({cfg.dataset._target_.rsplit('.', 1)[-1]}) is a static scene with one frame: use a "
+            "dynamic reader (dataset=blender_mv | owlii | dnerf | nerfies) or a static experiment")
+
+
+def print_summary(record: dict, run_dir: Path) -> None:
+    """The end-of-run summary on stdout: metrics, time, splats, and where everything was written."""
+    m = record.get("metrics", {})
+    if record.get("status") != "ok":
+        print(f"\nrun failed: {record.get('reason') or record.get('error')}\n  record: {run_dir / 'metrics.json'}")
+        return
+    lines = [
+        "",
+        f"{record.get('method')} on {record['keys'].get('scene')} ({record['keys'].get('n_views')} views): "
+        f"test PSNR {m.get('psnr', float('nan')):.2f} dB, SSIM {m.get('ssim', float('nan')):.4f}, "
+        f"{m.get('n_splats')} splats, trained in {m.get('train_s', float('nan')):.0f} s",
+        f"  metrics   {run_dir / 'metrics.json'}",
+        f"  renders   {run_dir / 'renders' / 'test'}",
+        f"  splats    {run_dir / 'splats.ply'}",
+        f"  logs      tensorboard --logdir {run_dir / 'tb'}",
+        f"  view      python -m src.view {run_dir}",
+    ]
+    print("\n".join(lines))
+
+
+def _run_mode() -> RunMode:
+    try:
+        return HydraConfig.get().mode
+    except ValueError:
+        return RunMode.RUN
+
+
 @hydra.main(version_base="1.3", config_path="../conf", config_name="config")
 def main(cfg: DictConfig) -> float | None:
-    record = run(cfg)
+    """The CLI: a single run exits 2 on invalid input and 1 if the run failed (diverged or collapsed).
+
+    In a sweep (``--multirun``) a failed run is recorded and the sweep goes on.
+    """
+    single = _run_mode() == RunMode.RUN
+    try:
+        record = run(cfg)
+    except INPUT_ERRORS as e:
+        if not single:
+            raise
+        log.error("%s", e)
+        sys.exit(2)
+    if single:
+        print_summary(record, Path(record.get("run_dir", ".")))
+        if record.get("status") != "ok":
+            sys.exit(1)
     return record.get("metrics", {}).get("psnr")
 
 

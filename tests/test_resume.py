@@ -74,7 +74,7 @@ def test_sigkilled_run_resumes_to_identical_metrics(tmp_path):
     assert p.returncode == 0, p.stderr[-3000:]
 
     kill_after_checkpoints(command(scene, killed), killed / "checkpoint.pt", n=2)
-    ck = torch.load(killed / "checkpoint.pt", map_location="cpu", weights_only=False)
+    ck = torch.load(killed / "checkpoint.pt", map_location="cpu", weights_only=True)
     assert CKPT_EVERY - 1 <= ck["iteration"] < ITERATIONS - 1  # killed mid-training
     # a killed run's record says "running", never "ok"
     assert json.loads((killed / "metrics.json").read_text())["status"] == "running"

@@ -19,6 +19,7 @@ from src.core.cameras import Camera, opengl_to_opencv
 from src.data.base import DatasetError, DatasetReader, Scene, View, read_json
 from src.data.images import composite, read_image, resize_premultiplied
 from src.data.normalise import cameras_extent, fit_normalisation, normalise_camera
+from src.data.validate import check_fov, check_pose, check_size
 from src.data.views import select_views
 
 IMAGE_EXTENSIONS = (".png", ".exr", ".jpg", ".jpeg", "")
@@ -52,6 +53,12 @@ def load_transforms(path: Path) -> dict:
         m = fr["transform_matrix"]
         if not (isinstance(m, list) and len(m) == 4 and all(isinstance(r, list) and len(r) == 4 for r in m)):
             raise DatasetError(f"{path}: frames[{i}].transform_matrix must be a 4x4 list of lists")
+        try:
+            matrix = torch.tensor(m, dtype=torch.float64)
+        except (TypeError, ValueError):
+            raise DatasetError(f"{path}: frames[{i}].transform_matrix must hold numbers") from None
+        check_pose(matrix, f"{path}: frames[{i}]", "transform_matrix")
+    check_fov(data["camera_angle_x"], str(path))
     return data
 
 
@@ -81,7 +88,7 @@ def read_split(root: Path, split: str, background: Tensor, downscale: float,
     """Views of ``transforms_<split>.json`` (only ``indices`` if given), plus the raw JSON."""
     json_path = root / f"transforms_{split}.json"
     data = load_transforms(json_path)
-    fov_x = float(data["camera_angle_x"])
+    fov_x = check_fov(data["camera_angle_x"], str(json_path))
     frames = data["frames"]
     wanted = range(len(frames)) if indices is None else indices
     views: list[View] = []
@@ -103,6 +110,7 @@ def read_split(root: Path, split: str, background: Tensor, downscale: float,
         cam = frame_camera(fr, fov_x, w, h, name=Path(fr["file_path"]).name)
         if downscale != 1.0:
             th, tw = round(h / downscale), round(w / downscale)
+            check_size(th, tw, str(path), downscale)
             if rgba.shape[-1] == 4:
                 rgba = resize_premultiplied(rgba, (th, tw))
             else:

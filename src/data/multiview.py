@@ -20,7 +20,6 @@ cameras; each (camera, frame) at most once.
 from __future__ import annotations
 
 import logging
-
 from dataclasses import replace
 from pathlib import Path
 

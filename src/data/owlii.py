@@ -34,6 +34,7 @@ from src.data.detect import check_format, check_root
 from src.data.dnerf import scene_meta, strided
 from src.data.images import read_image
 from src.data.normalise import cameras_extent
+from src.data.validate import check_size
 from src.data.views import select_views
 
 log = logging.getLogger(__name__)
@@ -77,7 +78,7 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise DatasetError(f"camera file not found: {path}")
     try:
-        with np.load(path) as z:
+        with np.load(path, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile) as e:
         raise DatasetError(f"cannot read {path}: {e}") from e
@@ -92,6 +93,8 @@ def neus_cameras(npz_path: Path, n_images: int, folder: Path) -> list[tuple[np.n
                 raise DatasetError(f"{npz_path}: missing '{key}' (needed for image {i} of {folder})")
             if cams[key].shape not in ((4, 4), (3, 4)):
                 raise DatasetError(f"{npz_path}: '{key}' has shape {cams[key].shape}, expected 4x4 or 3x4")
+            if not np.isfinite(cams[key]).all():
+                raise DatasetError(f"{npz_path}: '{key}' holds non-finite values (NaN or Inf)")
     n_mats = len([k for k in cams if re.fullmatch(r"world_mat_\d+", k)])
     if n_mats != n_images:
         raise DatasetError(f"{npz_path}: {n_mats} world_mat_* entries but {n_images} images in {folder} "
@@ -163,6 +166,7 @@ def load_rgb_mask(image_path: Path, mask_path: Path | None, background: Tensor, 
     rgb = img[..., :3]
     if downscale != 1.0:
         size = (round(h / downscale), round(w / downscale))
+        check_size(size[0], size[1], str(image_path), downscale)
         if mode == "straight" and mask is not None:  # resample premultiplied colour, then un-premultiply
             pre = _area_resize(torch.cat([rgb * mask[..., None], mask[..., None]], -1), size)
             mask = pre[..., 3]
@@ -229,13 +233,22 @@ class OwliiDataset(DatasetReader):
         view_seed: seed of the K-means camera choice.
         n_test_frames: evenly spread test frames per test camera (None = all).
         n_test: then keep this many evenly strided test views (None = all).
+        camera_ids: training camera numbers k of ``cam_train_<k>`` (the experiments' protocol key, e.g.
+            [1, 3, 6, 8]); an alternative to ``train_cameras``.
     """
 
     def __init__(self, root: str, n_views: int | None = None, train_cameras: list[str] | None = None,
                  test_cameras: list[str] | None = None, frames: int | None = None, downscale: float = 1.0,
                  background: str | list[float] = "white", composite: str = "premultiplied", view_seed: int = 0,
-                 n_test_frames: int | None = None, n_test: int | None = None) -> None:
+                 n_test_frames: int | None = None, n_test: int | None = None,
+                 camera_ids: list[int] | None = None) -> None:
         self.root = check_root(root)
+        if camera_ids is not None:  # the experiments' camera numbers, e.g. [1, 3, 6, 8] -> cam_train_1, ...
+            if train_cameras is not None:
+                raise ValueError("dataset.camera_ids and dataset.train_cameras both set: give one of them")
+            if not all(isinstance(c, int) and c >= 0 for c in camera_ids):
+                raise ValueError(f"dataset.camera_ids={list(camera_ids)}: expected non-negative integers")
+            train_cameras = [f"cam_train_{int(c)}" for c in camera_ids]
         if downscale <= 0:
             raise ValueError(f"dataset.downscale={downscale} must be > 0")
         if composite not in COMPOSITE_MODES:

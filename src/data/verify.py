@@ -119,7 +119,7 @@ def load_gt_mesh(path) -> tuple[Tensor, Tensor, np.ndarray | None]:
     Returns (vertices [V, 3] or [F, V, 3] float64 in world coordinates, faces [T, 3] int64, times [F]
     float32 or None).
     """
-    with np.load(path) as z:
+    with np.load(path, allow_pickle=False) as z:
         q = _undelta_planes(z["vertices"])  # [3, V] or [3, V, F] uint16
         verts = z["offset"] + q.T.astype(np.float64) * z["step"]  # [V, 3] or [F, V, 3]
         faces = _undelta_planes(z["faces"]).astype(np.int64).reshape(-1, 3)

@@ -19,10 +19,32 @@ from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 from src.rasterizer.base import Rasterizer
 from src.strategy.base import Strategy
-from src.trainer.guard import DivergenceGuard
+from src.trainer.guard import DivergenceError, DivergenceGuard
 from src.utils.record import atomic_write_bytes
 
 log = logging.getLogger(__name__)
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be resumed from; the message names the file and the way out."""
+
+
+CHECKPOINT_KEYS = ("iteration", "model", "optimizer", "strategy", "py_rng", "torch_rng", "np_rng", "generator",
+                   "extra")
+
+
+def numpy_rng_state() -> dict:
+    """numpy's global (legacy) RNG state as plain types and a tensor, loadable with ``weights_only=True``."""
+    name, keys, pos, has_gauss, cached = np.random.get_state()  # noqa: NPY002 - libraries use the global RNG
+    return {"name": str(name), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)), "pos": int(pos),
+            "has_gauss": int(has_gauss), "cached_gaussian": float(cached)}
+
+
+def set_numpy_rng_state(state: dict) -> None:
+    """Restore what :func:`numpy_rng_state` stored."""
+    keys = state["keys"].numpy().astype(np.uint32)
+    np.random.set_state((state["name"], keys, state["pos"], state["has_gauss"],  # noqa: NPY002
+                         state["cached_gaussian"]))
 
 
 def _mse_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -40,7 +62,8 @@ class Trainer:
         log_every: TensorBoard / progress-bar update interval.
         image_every: TensorBoard image interval (0 = never).
         ckpt_every: checkpoint interval (0 = only at the end). Checkpoints are written atomically.
-        resume: resume from ``<run>/checkpoint.pt`` if it exists.
+        resume: resume from ``<run>/checkpoint.pt`` if it exists; false = start fresh, keeping an existing
+            checkpoint aside as ``checkpoint.pt.<timestamp>.old``.
         progress: show a tqdm progress bar.
         tensorboard: write TensorBoard scalars and images under ``<run>/tb``.
         guard: divergence-guard settings (see :class:`DivergenceGuard`).
@@ -78,16 +101,49 @@ class Trainer:
     @staticmethod
     def save_checkpoint(path: Path, model: SplatModel, optimizer: SplatOptimizer, strategy: Strategy,
                         iteration: int, rng: random.Random, generator: torch.Generator, extra: dict) -> None:
+        """Write ``path`` atomically, holding only what ``torch.load(weights_only=True)`` reads back.
+
+        Tensors, numbers, strings, None and dicts / lists / tuples of them: the RNG states are stored
+        as such (numpy's legacy state as a dict with a tensor of keys), so loading runs no code.
+        """
         import io
 
         buf = io.BytesIO()
         torch.save({
             "iteration": iteration, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
             "strategy": strategy.state_dict(), "py_rng": rng.getstate(), "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),  # noqa: NPY002 - restores libraries' global RNG
-            "generator": generator.get_state(), "extra": extra,
+            "np_rng": numpy_rng_state(), "generator": generator.get_state(), "extra": extra,
         }, buf)
         atomic_write_bytes(path, buf.getvalue())
+
+    @staticmethod
+    def load_checkpoint(path: Path) -> dict:
+        """Read a checkpoint with ``weights_only=True`` (no code runs); CheckpointError names the file."""
+        try:
+            ck = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as e:  # truncated, corrupt, or holding types the safe loader refuses
+            raise CheckpointError(
+                f"{path}: cannot read this checkpoint ({type(e).__name__}: {str(e).splitlines()[0][:200]}); "
+                "to start fresh and keep it aside, re-run with trainer.resume=false") from None
+        missing = [k for k in CHECKPOINT_KEYS if not isinstance(ck, dict) or k not in ck]
+        if missing:
+            raise CheckpointError(f"{path}: not a checkpoint of this project (missing {missing}); to start fresh "
+                                  "and keep it aside, re-run with trainer.resume=false")
+        return ck
+
+    @staticmethod
+    def set_aside(path: Path) -> Path | None:
+        """Rename an existing checkpoint to ``<name>.<timestamp>.old`` (never deleted); returns the new path."""
+        if not path.is_file():
+            return None
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        target = path.with_name(f"{path.name}.{stamp}.old")
+        k = 1
+        while target.exists():
+            target, k = path.with_name(f"{path.name}.{stamp}-{k}.old"), k + 1
+        path.rename(target)
+        log.info("trainer.resume=false: kept the previous checkpoint aside as %s", target)
+        return target
 
     # -- one optimisation step ------------------------------------------------------------------
     @staticmethod
@@ -113,6 +169,9 @@ class Trainer:
         t2 = time.perf_counter()
         terms = loss_fn(renders, views, splats, iteration=it)
         guard.check_loss(terms["total"], it)
+        if not terms["total"].requires_grad:  # nothing of the model reached any rendered pixel
+            raise DivergenceError(f"collapse: no splat is visible in the training view(s) "
+                                  f"{[c.name for c in cams]} at iteration {it} (the loss has no gradient)")
         terms["total"].backward()
         t3 = time.perf_counter()
         guard.check_gradients(model.parameters(), it)
@@ -142,15 +201,17 @@ class Trainer:
         prev_train_s = 0.0
         resumed_timing: dict[str, float] = {}
         resumed_n_timed = 0
-        if self.resume and ckpt_path.is_file():
-            ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if not self.resume:
+            self.set_aside(ckpt_path)
+        elif ckpt_path.is_file():
+            ck = self.load_checkpoint(ckpt_path)
             model.load_state_dict(ck["model"])
             optimizer = make_optimizer(model)
             optimizer.load_state_dict(ck["optimizer"])
             strategy.load_state_dict(ck["strategy"])
             rng.setstate(ck["py_rng"])
             torch.set_rng_state(ck["torch_rng"])
-            np.random.set_state(ck["np_rng"])  # noqa: NPY002
+            set_numpy_rng_state(ck["np_rng"])
             generator.set_state(ck["generator"])
             start = ck["iteration"] + 1
             prev_train_s = ck["extra"].get("train_s", 0.0)

@@ -1,31 +1,171 @@
-"""The one place where Hydra configs become objects.
+"""The one place where Hydra configs become objects, and the allow-list that keeps configs from running code.
 
-Every component (dataset, model, rasterizer, loss, ...) is built here so that a future change in
-Hydra's instantiate rules (e.g. the 1.4 ``_target_`` allow-list) is a one-line edit.
+Every component (dataset, model, rasterizer, loss, ...) is built here. A config names what to build
+with ``_target_``; since configs come from files and the command line, every ``_target_`` at every
+depth is checked BEFORE anything is built:
+
+* it must resolve to a class or function *defined* in the project's own package ``src`` (its
+  ``__module__.__qualname__`` is the target itself, so ``src.run.torch.load`` -- torch reached
+  through a project module's namespace -- is refused), or be one of :data:`EXTRA_TARGETS`;
+* the keys of the node must be parameters of that callable, so a config meant for another reader
+  or model fails with one line naming the node, the key and what the callable accepts, instead of a
+  ``TypeError`` from inside Hydra.
 """
 
 from __future__ import annotations
 
+import importlib
+import inspect
+from collections.abc import Iterator
 from typing import Any
 
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
-TARGET_PREFIXES = ("src.", "torch.", "functools.")
+#: The package whose callables configs may build.
+PROJECT_PACKAGE = "src"
+#: Callables outside the project that a config may name (none is needed by the shipped configs).
+EXTRA_TARGETS: frozenset[str] = frozenset()
+#: Hydra's own instantiate keys (not parameters of the target).
+HYDRA_KEYS = frozenset({"_target_", "_partial_", "_convert_", "_recursive_", "_args_"})
+
+
+class ConfigError(ValueError):
+    """A config node that cannot be built: unknown or forbidden ``_target_``, or keys the target does not take."""
+
+
+def iter_targets(node: Any, path: str = "") -> Iterator[tuple[str, str]]:
+    """Yield (dotted path of the node, its ``_target_``) for every node with a ``_target_``, at every depth.
+
+    OmegaConf containers are walked unresolved (an interpolated ``_target_`` is checked as written,
+    hence refused), so nothing is evaluated before the check.
+    """
+    if isinstance(node, DictConfig | ListConfig):
+        node = OmegaConf.to_container(node, resolve=False)
+    if isinstance(node, dict):
+        if "_target_" in node:
+            yield path or "<root>", str(node["_target_"])
+        for k, child in node.items():
+            yield from iter_targets(child, f"{path}.{k}" if path else str(k))
+    elif isinstance(node, list | tuple):
+        for i, child in enumerate(node):
+            yield from iter_targets(child, f"{path}[{i}]")
+
+
+def _name_of(obj: Any) -> str:
+    """Where ``obj`` is defined: a module's name, or ``module.qualname`` of a class or function."""
+    if inspect.ismodule(obj):
+        return obj.__name__
+    return f"{getattr(obj, '__module__', '?')}.{getattr(obj, '__qualname__', type(obj).__name__)}"
+
+
+def _inside_project(obj: Any) -> bool:
+    """True for a module of the project's package, or a class / function defined in one."""
+    name = obj.__name__ if inspect.ismodule(obj) else getattr(obj, "__module__", None)
+    if not isinstance(name, str):
+        return False
+    return name == PROJECT_PACKAGE or name.startswith(PROJECT_PACKAGE + ".")
+
+
+def _resolve_target(target: str, where: str) -> Any:
+    """Import and return the callable named ``target`` if the allow-list admits it (ConfigError otherwise)."""
+    if target in EXTRA_TARGETS:
+        module_name, _, attr = target.rpartition(".")
+        return getattr(importlib.import_module(module_name), attr)
+    parts = target.split(".")
+    if parts[0] != PROJECT_PACKAGE or len(parts) < 2 or not all(p.isidentifier() for p in parts):
+        raise ConfigError(f"{where}: _target_ {target!r} is not allowed: only callables defined in the project's "
+                          f"package {PROJECT_PACKAGE!r} may be built from a config")
+    obj: Any = None
+    for i in range(len(parts) - 1, 0, -1):  # longest importable module prefix, then attributes
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ModuleNotFoundError:
+            continue
+        for attr in parts[i:]:
+            if not _inside_project(obj):  # e.g. src.run.torch.load: torch reached through a project module
+                raise ConfigError(f"{where}: _target_ {target!r} is not allowed: it passes through "
+                                  f"{_name_of(obj)!r}, which is not part of the project's package")
+            try:
+                obj = getattr(obj, attr)
+            except AttributeError:
+                raise ConfigError(f"{where}: _target_ {target!r} does not exist") from None
+        break
+    else:
+        raise ConfigError(f"{where}: _target_ {target!r} does not exist")
+    if not callable(obj) or inspect.ismodule(obj) or not _inside_project(obj):
+        raise ConfigError(f"{where}: _target_ {target!r} is not allowed: it resolves to {_name_of(obj)!r}, not to "
+                          f"a class or function defined in the project's package")
+    return obj
+
+
+def _accepted(obj: Any) -> tuple[set[str] | None, list[str]]:
+    """(parameter names ``obj`` accepts by keyword, or None if it takes ``**kwargs``; names for messages)."""
+    try:
+        sig = inspect.signature(obj)
+    except (TypeError, ValueError):
+        return None, []
+    params = [p for p in sig.parameters.values() if p.name != "self"]
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None, [p.name for p in params]
+    by_name = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    names = [p.name for p in params if p.kind in by_name]
+    return set(names), names
+
+
+def check_targets(cfg: Any, root: str = "") -> None:
+    """Check every ``_target_`` in ``cfg`` (allow-list) and that each node's keys are parameters of its target.
+
+    Args:
+        cfg: a config tree (DictConfig, dict, list). A top-level ``hydra`` node is skipped (Hydra's own).
+        root: dotted name of ``cfg`` in the whole config, used in messages (e.g. ``dataset``).
+
+    Raises:
+        ConfigError: one line naming the node, the target and the offending key.
+    """
+    plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig | ListConfig) else cfg
+    for path, target in iter_targets(plain):
+        if root == "" and path.split(".", 1)[0].split("[", 1)[0] == "hydra":
+            continue
+        where = root if path == "<root>" and root else (f"{root}.{path}" if root and path != "<root>" else path)
+        obj = _resolve_target(target, where)
+        accepted, names = _accepted(obj)
+        if accepted is None:
+            continue
+        node = plain if path == "<root>" else _select_plain(plain, path)
+        keys = {str(k) for k in node.keys()} - HYDRA_KEYS
+        unknown = sorted(keys - accepted)
+        if unknown:
+            raise ConfigError(f"{where}: {target} does not take {', '.join(repr(k) for k in unknown)} "
+                              f"(it takes: {', '.join(names)}); this config group option is not meant for "
+                              f"this component")
+
+
+def _select_plain(cfg: Any, path: str) -> Any:
+    """The node at dotted ``path`` (with ``[i]`` list indices) of a plain dict/list tree."""
+    node = cfg
+    for part in path.replace("[", ".[").split("."):
+        if not part:
+            continue
+        node = node[int(part[1:-1])] if part.startswith("[") else node[part]
+    return node
 
 
 def build(cfg: DictConfig | dict, **kwargs: Any) -> Any:
     """Instantiate ``cfg`` (a node with ``_target_``), passing runtime-only objects as ``kwargs``.
 
+    Every nested ``_target_`` is checked against the allow-list first (:func:`check_targets`).
+
     Raises:
-        ValueError: if the node has no ``_target_`` or it points outside the allowed packages.
+        ConfigError (a ValueError): no ``_target_``, a target outside the allow-list, or keys it does not take.
     """
     target = cfg.get("_target_") if isinstance(cfg, dict | DictConfig) else None
+    name = cfg._get_full_key(None) if isinstance(cfg, DictConfig) and cfg._get_parent() is not None else ""
     if target is None:
         keys = list(cfg.keys()) if isinstance(cfg, dict | DictConfig) else type(cfg).__name__
-        raise ValueError(f"cannot build a component from a config without _target_ (keys: {keys})")
-    if not str(target).startswith(TARGET_PREFIXES):
-        raise ValueError(f"_target_ {target!r} is outside the allowed packages {TARGET_PREFIXES}")
+        raise ConfigError(f"{name or 'config'}: cannot build a component from a config without _target_ "
+                          f"(keys: {keys})")
+    check_targets(cfg, root=str(name))
     if isinstance(cfg, dict):
         cfg = OmegaConf.create(cfg)
     return instantiate(cfg, _convert_="all", **kwargs)
