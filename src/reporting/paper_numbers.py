@@ -1,6 +1,6 @@
 """Published numbers of the SplatFields supplementary material, Tables C.1–C.6, quoted verbatim.
 
-Source: ``/work/shared/paper/splatfields_supplementary.txt`` (the supplementary material, Sec. C).
+Source: the supplementary material of the SplatFields paper (arXiv 2409.11211), Sec. C.
 Every value below is copied digit for digit from that text; ``None`` stands for the paper's "-"
 ("failed run" in Tab. C.1/C.2). Row labels are the printed ones with the HTML/LaTeX markup removed
 (``3DGS <i>w. \\mathcal{L}_{Moran}</i>`` is written ``3DGS w. L_Moran``). Column headers are as
