@@ -30,6 +30,7 @@ from torch import Tensor, nn
 from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
+from src.fields.fused import HeadInput, add_pe, cpu_has_native_bf16, first_layers, head_tail, head_weights
 from src.fields.mlp import FieldMLP, get_activation
 
 SCALE_MODES = ("exp", "additive_quirk")
@@ -80,6 +81,12 @@ class SplatFieldNetwork(nn.Module):
             (reference; combined with ``output_act_quirk`` this is leaky(MLP) + base). The additive
             result is passed through |·| (clamped >= 1e-8): the covariance only depends on s², so
             this renders exactly what the reference renders while keeping scales positive.
+        fused: evaluate the heads through ``src.fields.fused`` (one wide first-layer product for all
+            heads, PE(x_can) encoded once, split skip weights instead of concatenations); False is
+            the reference path (same parameters and state dict, equal up to rounding).
+        autocast_bf16: run the fused heads' products in bfloat16 (CPU autocast, float32 master weights,
+            output linears in float32): ``True``, ``False`` or ``"auto"`` (on where the CPU multiplies
+            bfloat16 natively, AVX512-BF16/AMX, and the inputs are float32 on the CPU). Fused path only.
     """
 
     def __init__(
@@ -128,6 +135,8 @@ class SplatFieldNetwork(nn.Module):
         activation: str = "relu",
         output_act_quirk: bool = False,
         scale_mode: str = "exp",
+        fused: bool = False,
+        autocast_bf16: bool | str = False,
     ) -> None:
         super().__init__()
         if scale_mode not in SCALE_MODES:
@@ -190,6 +199,13 @@ class SplatFieldNetwork(nn.Module):
         else:
             self.flow_pe, self.flow_mlp = None, None
         self._act = get_activation(activation)
+        self.fused = bool(fused)
+        if autocast_bf16 not in (True, False, "auto"):
+            raise ValueError(f"autocast_bf16 must be true, false or 'auto', got {autocast_bf16!r}")
+        self.autocast_bf16 = cpu_has_native_bf16() if autocast_bf16 == "auto" else bool(autocast_bf16)
+        # PE(x_can) of the fused path, at the largest level count of the heads that read x_can
+        # (a non-persistent buffer only: the state dict is unchanged).
+        self._shared_pe = PositionalEncoding(max(pe.n_levels for pe in self._xcan_heads()[1]))
         self.register_buffer("_identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
 
     def prepare(self) -> Any:
@@ -225,6 +241,8 @@ class SplatFieldNetwork(nn.Module):
         """
         if state is None:
             state = self.prepare()
+        if self.fused:
+            return self._forward_fused(canonical, base_scale, frame_id, time, viewdirs, state, camera_center)
         n = canonical.shape[0]
         feat = self.backbone.sample(state, canonical)  # [N, F] canonical feature
         if self.time_pe is not None:
@@ -250,22 +268,82 @@ class SplatFieldNetwork(nn.Module):
                 h = self._act(run(self.flow_pe, self.flow_mlp, x_can))  # [N, flow_width]
             means, R = self.flow(h, x_can, frame_id=fid, time=tim)  # [N, 3], [N, 3, 3] | None
 
-        extra = None
-        if self.view_dependent:
-            if viewdirs is None:
-                if camera_center is None:
-                    raise ValueError("view_dependent=True: forward() needs viewdirs or camera_center")
-                viewdirs = F.normalize(means - camera_center.to(means).view(1, 3), dim=-1)
-            extra = self.viewdir_pe(viewdirs)  # [N, 3 + 6·L_d]
-        colors = torch.sigmoid(run(self.color_pe, self.color_mlp, x_can, extra))  # [N, 3]
-        opacities = torch.sigmoid(run(self.opacity_pe, self.opacity_mlp, x_can)).squeeze(-1)  # [N]
+        extra = self._viewdir_enc(means, viewdirs, camera_center)
+        c = run(self.color_pe, self.color_mlp, x_can, extra)  # [N, 3]
+        o = run(self.opacity_pe, self.opacity_mlp, x_can)  # [N, 1]
         s = run(self.scale_pe, self.scale_mlp, x_can)  # [N, 3]
+        q = run(self.rotation_pe, self.rotation_mlp, x_can)  # [N, 4]
+        return self._activate(x_can, means, R, base_scale, c, o, s, q)
+
+    def _xcan_heads(self) -> tuple[list[FieldMLP], list[PositionalEncoding]]:
+        """The heads that read [PE(x_can), f, PE(t)] (flow trunk, colour, opacity, scale, rotation)."""
+        pairs = [(self.flow_mlp, self.flow_pe), (self.color_mlp, self.color_pe), (self.opacity_mlp, self.opacity_pe),
+                 (self.scale_mlp, self.scale_pe), (self.rotation_mlp, self.rotation_pe)]
+        pairs = [(m, pe) for m, pe in pairs if m is not None]
+        return [m for m, _ in pairs], [pe for _, pe in pairs]
+
+    def _viewdir_enc(self, means: Tensor, viewdirs: Tensor | None, camera_center: Tensor | None) -> Tensor | None:
+        """PE of the view directions [N, 3 + 6·L_d] (None when colour is view-independent)."""
+        if not self.view_dependent:
+            return None
+        if viewdirs is None:
+            if camera_center is None:
+                raise ValueError("view_dependent=True: forward() needs viewdirs or camera_center")
+            viewdirs = F.normalize(means - camera_center.to(means).view(1, 3), dim=-1)
+        return self.viewdir_pe(viewdirs)
+
+    def _forward_fused(self, canonical: Tensor, base_scale: Tensor, frame_id: int, time: float,
+                       viewdirs: Tensor | None, state: Any, camera_center: Tensor | None) -> dict[str, Tensor]:
+        """``forward`` through ``src.fields.fused`` (same inputs and outputs as the reference path)."""
+        fid = int(frame_id) if self.dynamic else None
+        tim = float(time) if self.dynamic else None
+        bf16 = self.autocast_bf16 and canonical.device.type == "cpu" and canonical.dtype == torch.float32
+        last = torch.float32 if bf16 else None
+        mlps, pes = self._xcan_heads()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            feat = self.backbone.sample(state, canonical)  # [N, F]
+            t_enc = self.time_pe(canonical.new_full((1, 1), float(time))) if self.time_pe is not None else None
+            fd, td = int(feat.shape[-1]), int(t_enc.shape[-1]) if t_enc is not None else 0
+            pe_max = self._shared_pe.out_dim(3)
+            weights = [head_weights(m, fid, tim) for m in mlps]
+            heads = [HeadInput(m, w, pe.out_dim(3), pe_max, fd, td)
+                     for m, w, pe in zip(mlps, weights, pes, strict=True)]
+            groups: list[list[HeadInput]] = [heads]
+            if self.deform_mlp is not None:
+                wd = head_weights(self.deform_mlp, fid, tim)
+                dim_d = self.deform_pe.out_dim(3)
+                groups.insert(0, [HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)])
+            u = first_layers(groups, feat, t_enc)  # per group [N, S_g]
+            x_can = canonical
+            if self.deform_mlp is not None:
+                (blocks,) = add_pe(u[0], groups[0], self.deform_pe(canonical))
+                x_can = canonical + self.deform_weight * head_tail(self.deform_mlp, wd, blocks, last_dtype=last)
+            blocks_o = add_pe(u[-1], heads, self._shared_pe(x_can))
+            outs = {}
+            for m, w, b in zip(mlps, weights, blocks_o, strict=True):
+                if m is not self.color_mlp:
+                    outs[id(m)] = head_tail(m, w, b, last_dtype=last)
+        means, R = x_can, None
+        if self.flow is not None:
+            h = self._act(outs[id(self.flow_mlp)]) if self.flow_mlp is not None else None  # [N, flow_width]
+            means, R = self.flow(h, x_can, frame_id=fid, time=tim)
+        extra = self._viewdir_enc(means, viewdirs, camera_center)
+        ic = mlps.index(self.color_mlp)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            c = head_tail(self.color_mlp, weights[ic], blocks_o[ic], extra, last_dtype=last)
+        return self._activate(x_can, means, R, base_scale, c, outs[id(self.opacity_mlp)], outs[id(self.scale_mlp)],
+                              outs[id(self.rotation_mlp)])
+
+    def _activate(self, x_can: Tensor, means: Tensor, R: Tensor | None, base_scale: Tensor, c: Tensor, o: Tensor,
+                  s: Tensor, q: Tensor) -> dict[str, Tensor]:
+        """Output activations of the raw head outputs c [N, 3], o [N, 1], s [N, 3], q [N, 4]."""
+        colors = torch.sigmoid(c)  # [N, 3]
+        opacities = torch.sigmoid(o).squeeze(-1)  # [N]
         if self.scale_mode == "exp":
             scales = base_scale * torch.exp(s)
         else:
             scales = (s + base_scale).abs().clamp_min(1e-8)
-        q = run(self.rotation_pe, self.rotation_mlp, x_can) + self._identity_quat.to(x_can.dtype)
-        quats = F.normalize(q, dim=-1)  # [N, 4] wxyz
+        quats = F.normalize(q + self._identity_quat.to(x_can.dtype), dim=-1)  # [N, 4] wxyz
         if R is not None:  # the flow's rotation acts after the canonical rotation
             quats = F.normalize(quat_multiply_wxyz(rotmat_to_quat_wxyz(R), quats), dim=-1)
         return {

@@ -103,10 +103,12 @@ class SplatFieldsModel(SplatModel):
     def splats(self, camera: Camera) -> Splats:
         return self._to_splats(self._predict(camera, self.network.prepare()))
 
-    def splats_for(self, cameras: list[Camera]) -> list[Splats]:
-        """Splats for several cameras: the tri-plane CNN runs once, and with view-independent colour the
+    def splats_for(self, cameras: list[Camera], state: object = None) -> list[Splats]:
+        """Splats for several cameras: the tri-plane CNN runs once (``state``: its precomputed
+        ``network.prepare()`` output, computed here when None), and with view-independent colour the
         heads run once per distinct time (the views of one training step share it)."""
-        state = self.network.prepare()
+        if state is None:
+            state = self.network.prepare()
         if getattr(self.network, "view_dependent", False):
             return [self._to_splats(self._predict(c, state)) for c in cameras]
         cache: dict[tuple[int, float], Splats] = {}

@@ -1,0 +1,148 @@
+"""Fused evaluation of the field heads that read the same input (the fast path of ``SplatFieldNetwork``).
+
+Every head ``FieldMLP`` reads ``h_in = [PE(x), f, PE(t)]`` at its first linear and again at each skip
+linear (``W_skip [h_in, h] = W_x h_in + W_h h``). All those input parts are linear in ``h_in``, so
+for a group of heads that share ``h_in`` they are computed by ONE wide product per input block:
+
+    U = f @ W_f_allᵀ + (b_all + W_t_all PE(t))     f: [N, F], one product for ALL heads
+    U_g += PE_Lmax(x_g) @ W_pe_gᵀ                   per group g: PE once, at the group's largest L
+
+PE(t) is one row per call (all splats share the time), so its part is folded into the bias. A head
+with fewer PE levels than the group's maximum reads a prefix of PE_Lmax (the layout is level-major:
+[x, sin f0 x, cos f0 x, sin f1 x, ...]); its weight is zero-padded. The hidden and output layers then
+run per head, the skip layers as ``addmm(U_skip, h, W_hᵀ)`` without concatenating [N, in + width]
+tensors. The parameters are the heads' own (state dicts unchanged); the fused weights are
+concatenated from them on every call (a few kB), so gradients reach every head as before.
+
+The slow reference is ``FieldMLP.forward`` on explicit concatenations; ``tests/test_fused_heads.py``
+checks that both agree in float64 (values and gradients).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from src.fields.mlp import FieldMLP
+
+
+@functools.cache
+def cpu_has_native_bf16() -> bool:
+    """True when this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX-BF16 in /proc/cpuinfo)."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    words = set(flags.split())
+    return bool(words & {"avx512_bf16", "amx_bf16"})
+
+
+def head_weights(mlp: FieldMLP, frame_id: int | None, time: float | None) -> list[Tensor]:
+    """The [out, in] weight of every linear of ``mlp`` at this frame/time (ResField residuals applied)."""
+    return [layer.weight_at(frame_id, time) for layer in mlp.layers]
+
+
+class HeadInput:
+    """The input-part columns of one head's first and skip linears: ``[L0, skip_1, ...]`` blocks.
+
+    Args:
+        mlp: the head.
+        weights: ``head_weights(mlp, ...)``.
+        pe_dim: width of the head's PE(x) block; pe_max: width of the group's shared PE block.
+        feat_dim: width of the backbone feature f; time_dim: width of PE(t) (0 when static).
+    """
+
+    def __init__(self, mlp: FieldMLP, weights: list[Tensor], pe_dim: int, pe_max: int, feat_dim: int,
+                 time_dim: int) -> None:
+        self.mlp = mlp
+        self.rows = [0, *mlp.skips]  # linears that read h_in
+        w_pe, w_f, w_t, b = [], [], [], []
+        for i in self.rows:
+            w_in = weights[i][:, : mlp.in_dim]  # [out, in_dim]: the input part (reference order: input first)
+            w_pe.append(F.pad(w_in[:, :pe_dim], (0, pe_max - pe_dim)))  # [out, pe_max]
+            w_f.append(w_in[:, pe_dim: pe_dim + feat_dim])  # [out, F]
+            w_t.append(w_in[:, pe_dim + feat_dim: pe_dim + feat_dim + time_dim])  # [out, T]
+            b.append(mlp.layers[i].bias)  # the skip linear's bias travels with its input part
+        self.sizes = [int(w.shape[0]) for w in w_pe]
+        self.w_pe, self.w_f, self.w_t, self.b = (torch.cat(w_pe), torch.cat(w_f), torch.cat(w_t), torch.cat(b))
+
+
+def first_layers(groups: Sequence[Sequence[HeadInput]], feat: Tensor, t_enc: Tensor | None) -> list[Tensor]:
+    """The shared-feature part of every head's input-reading linears: one product for all groups.
+
+    Args:
+        groups: the heads, grouped by the PE(x) block they read.
+        feat: [N, F] backbone feature (F may be 0).
+        t_enc: [1, T] PE(t) row or None (static).
+
+    Returns:
+        per group, [N, S_g] = f W_fᵀ + b + W_t PE(t) (S_g: the group's summed first/skip widths); the
+        group's PE part is added by ``add_pe``.
+    """
+    heads = [h for g in groups for h in g]
+    b = torch.cat([h.b for h in heads])  # [S]
+    if t_enc is not None and t_enc.shape[-1] > 0:
+        b = b + t_enc.reshape(-1) @ torch.cat([h.w_t for h in heads]).t()  # [S]
+    widths = [sum(sum(h.sizes) for h in g) for g in groups]
+    if feat.shape[-1] == 0:
+        return [bg.expand(feat.shape[0], -1) for bg in b.split(widths)]
+    u = torch.addmm(b, feat, torch.cat([h.w_f for h in heads]).t())  # [N, S]
+    return list(u.split(widths, dim=1))
+
+
+def add_pe(u: Tensor, heads: Sequence[HeadInput], pe: Tensor) -> list[list[Tensor]]:
+    """u [N, S_g] + PE [N, pe_max] @ W_peᵀ, split per head into its ``[L0, skip_1, ...]`` blocks."""
+    out = torch.addmm(u, pe, torch.cat([h.w_pe for h in heads]).t())  # [N, S_g]
+    blocks = out.split([s for h in heads for s in h.sizes], dim=1)
+    res, k = [], 0
+    for h in heads:
+        res.append(list(blocks[k: k + len(h.sizes)]))
+        k += len(h.sizes)
+    return res
+
+
+def head_tail(mlp: FieldMLP, weights: list[Tensor], blocks: list[Tensor], extra: Tensor | None = None,
+              last_dtype: torch.dtype | None = None) -> Tensor:
+    """Finish one head from its input-part pre-activations ``blocks`` (``[L0, skip_1, ...]``, each [N, W]).
+
+    Equals ``mlp(h_in, extra=extra)`` (same activation, output quirk). ``last_dtype``: run the output
+    linear in this dtype outside autocast (float32 keeps the outputs accurate under bf16 autocast).
+    """
+    act = mlp._act
+    h = act(blocks[0])  # [N, width]
+    k, last = 1, mlp.n_layers - 1
+    for i in range(1, mlp.n_layers):
+        w = weights[i]
+        if i == last and last_dtype is not None:
+            with torch.autocast(h.device.type, enabled=False):
+                h = h.to(last_dtype)
+                extra = extra.to(last_dtype) if extra is not None else None
+                h = _linear_part(h, w, mlp, blocks, k, i, extra)
+        else:
+            h = _linear_part(h, w, mlp, blocks, k, i, extra)
+        if i in mlp.skips:
+            k += 1
+        if i < last:
+            h = act(h)
+    if mlp.output_act_quirk:
+        h = F.leaky_relu(h)
+    return h
+
+
+def _linear_part(h: Tensor, w: Tensor, mlp: FieldMLP, blocks: list[Tensor], k: int, i: int,
+                 extra: Tensor | None) -> Tensor:
+    """Linear i of ``mlp`` on the hidden state h [N, width] (+ its precomputed skip block, + extra)."""
+    last = i == mlp.n_layers - 1
+    start = mlp.in_dim if i in mlp.skips else 0
+    if i in mlp.skips:  # W_skip [h_in, h] + b = (W_x h_in + b) + W_h h, the first term precomputed
+        y = torch.addmm(blocks[k].to(h.dtype), h, w[:, start: start + mlp.width].t())
+    else:
+        y = F.linear(h, w[:, : mlp.width] if last and extra is not None else w, mlp.layers[i].bias)
+    if last and extra is not None:
+        y = y + F.linear(extra, w[:, start + mlp.width:])  # W_e PE(viewdir)
+    return y
