@@ -9,6 +9,17 @@ times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_m
 ``--head-widths`` repeats the methods with neural fields at other ``field_budget.head_width`` values
 (the size a capacity search may choose), so the SplatFields ÷ 3DGS ratio can be read per width.
 Timings are medians over the timed iterations; compare them as ratios within one run.
+
+The floor: each row counts the FLOPs of its networks per iteration (forward + backward of the splat
+prediction, ``src.bench.flops.count_flops``; the rasterizer is not counted), ``generator_flops`` of
+the tri-plane CNN alone, and divides them by the machine's matmul and conv peaks measured at the start
+of the same run (``settings.peaks``): products that run under bf16 autocast (``precision`` "bf16":
+the fused heads) at the bf16 matmul peak, everything else at the float32 peaks. ``flop_floor_ms`` is
+that time, ``x_flop_floor`` = ``iter_ms`` / ``flop_floor_ms``. ``split`` is a second, hook-timed
+loop of the same step: generator forward, heads forward, rasterizer (forward, loss and its backward
+until the splat attributes hold their gradients), heads backward (until the planes hold theirs),
+generator backward, optimiser; ``generator_ms`` = generator forward + backward from that split.
+The default output is ``sweeps/results/bench/training.json``.
 """
 
 from __future__ import annotations
@@ -26,6 +37,8 @@ METHODS = ("gs3d", "splatfields3d", "sf_mlp", "deformable3dgs", "owl_4view")
 BENCH_FRAMES = 24  # frames of the shipped multi-view sequences (dynamic methods size their ResFields by it)
 SIZES = (10_000, 50_000)
 PARTS = ("field", "rasterizer", "backward", "optimizer")
+SPLIT = ("generator_fwd", "heads_fwd", "rasterizer", "heads_bwd", "generator_bwd", "optimizer")
+DEFAULT_OUT = Path("sweeps/results/bench/training.json")
 
 
 def _rss_peak_mb() -> float:
@@ -100,6 +113,9 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
            getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
            "iter_ms_min": min(totals)}
     row["backbone_ms"] = _backbone_ms(model, iters) if has_field(cfg) else None
+    row.update(_flops(model, cam, has_field(cfg)))
+    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup)
+    row["generator_ms"] = row["split"]["generator_fwd"] + row["split"]["generator_bwd"] if has_field(cfg) else None
     model.eval()
     with torch.no_grad():
         baked = model.bake()
@@ -112,6 +128,97 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
         row["fps_baked"] = reps / (time.perf_counter() - t0)
     row["peak_mem_mb"] = _rss_peak_mb()
     return row
+
+
+def _flops(model, cam, field: bool) -> dict:
+    """FLOPs per iteration of the networks (``flops``, ``flops_conv``, ``flops_matmul``) and of the
+    generator alone (``generator_flops``, ``generator_flops_conv``), and the heads' ``precision``."""
+    import torch
+
+    from src.bench.flops import count_flops
+
+    def networks() -> None:
+        splats = model.splats_for([cam])
+        loss = sum(getattr(s, k).float().sum() for s in splats for k in ("means", "scales", "quats", "opacities",
+                                                                             "colors") if getattr(s, k).requires_grad)
+        if torch.is_tensor(loss):
+            loss.backward()
+        model.zero_grad(set_to_none=True)
+
+    def generator() -> None:
+        state = model.network.backbone.prepare()
+        if torch.is_tensor(state) and state.requires_grad:
+            state.sum().backward()
+        model.zero_grad(set_to_none=True)
+
+    tot = count_flops(networks)
+    gen = count_flops(generator) if field else {"total": 0, "conv": 0, "matmul": 0}
+    net = getattr(model, "network", None)
+    bf16 = bool(getattr(net, "fused", False) and getattr(net, "autocast_bf16", False))
+    return {"flops": tot["total"], "flops_conv": tot["conv"], "flops_matmul": tot["matmul"],
+            "generator_flops": gen["total"], "generator_flops_conv": gen["conv"],
+            "precision": "bf16" if bf16 else "float32"}
+
+
+def flop_floor(row: dict, peaks: dict) -> float:
+    """Milliseconds of the row's FLOPs at the measured peaks (``settings.peaks``): the heads' products
+    at the bf16 matmul peak when they run under bf16 autocast, the rest at the float32 peaks."""
+    from src.bench.flops import floor_ms
+
+    gen = {"conv": row["generator_flops_conv"], "matmul": row["generator_flops"] - row["generator_flops_conv"]}
+    heads = {"conv": row["flops_conv"] - gen["conv"], "matmul": row["flops_matmul"] - gen["matmul"]}
+    heads_peaks = peaks["bfloat16"] if row["precision"] == "bf16" else peaks["float32"]
+    return floor_ms(gen, peaks["float32"]) + floor_ms(heads, heads_peaks)
+
+
+def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int) -> dict[str, float]:
+    """Median ms of each part of a training step (``SPLIT``), timed with autograd hooks: the
+    rasterizer's backward ends when the first splat attribute receives its gradient, the heads'
+    backward when the planes receive theirs."""
+    import torch
+
+    from src.trainer.trainer import Trainer  # noqa: F401 - same import state as the timed step
+
+    net = getattr(model, "network", None)
+    backbone = getattr(net, "backbone", None)
+    times: dict[str, list[float]] = {k: [] for k in SPLIT}
+    cams = [view.camera]
+    for it in range(warmup + iters):
+        marks: dict[str, float] = {}
+
+        def mark(name: str, marks: dict[str, float] = marks):
+            def hook(grad):
+                marks.setdefault(name, time.perf_counter())
+                return grad
+            return hook
+
+        optimizer.set_step(it)
+        t0 = time.perf_counter()
+        state = backbone.prepare() if backbone is not None else None
+        t1 = time.perf_counter()
+        splats = model.splats_for(cams, state=state) if state is not None else model.splats_for(cams)
+        t2 = time.perf_counter()
+        for s in splats:
+            for k in ("means", "scales", "quats", "opacities", "colors"):
+                v = getattr(s, k)
+                if v.requires_grad:
+                    v.register_hook(mark("attrs"))
+        if torch.is_tensor(state) and state.requires_grad:
+            state.register_hook(mark("planes"))
+        renders = [rasterizer.render(s, view.camera, torch.ones(3)) for s in splats]
+        loss_fn(renders, [view], splats, iteration=it)["total"].backward()
+        t3 = time.perf_counter()
+        optimizer.step()
+        optimizer.zero_grad()
+        t4 = time.perf_counter()
+        if it < warmup:
+            continue
+        ta = marks.get("attrs", t3)
+        tp = marks.get("planes", t3)
+        for k, v in (("generator_fwd", t1 - t0), ("heads_fwd", t2 - t1), ("rasterizer", ta - t2),
+                     ("heads_bwd", tp - ta), ("generator_bwd", t3 - tp), ("optimizer", t4 - t3)):
+            times[k].append(1000 * v)
+    return {k: statistics.median(v) for k, v in times.items()}
 
 
 def _backbone_ms(model, iters: int) -> float | None:
@@ -148,6 +255,7 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, head_width: int
 def print_table(rows: list[dict]) -> None:
     hdr = f"{'method':<15} {'width':>5} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
     hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'CNN ms':>7} {'peak MB':>8} {'FPS@200':>8}"
+    hdr += f" {'GFLOP':>7} {'prec':>7} {'floor ms':>8} {'x floor':>7}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
@@ -158,14 +266,27 @@ def print_table(rows: list[dict]) -> None:
         ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
         name = f"{r['method']:<15} {r.get('head_width') or '-':>5}"
         cnn = f"{r['backbone_ms']:.1f}" if r.get("backbone_ms") is not None else "-"
+        xf = f"{r['x_flop_floor']:.2f}" if r.get("x_flop_floor") else "-"
         print(f"{name} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} {cnn:>7} "
-              f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f}")
+              f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f} {r['flops'] / 1e9:>7.2f} {r['precision']:>7} "
+              f"{r['flop_floor_ms']:>8.1f} {xf:>7}")
+    print()
+    hdr = f"{'split (ms)':<15} {'width':>5} {'splats':>7} " + " ".join(f"{k:>13}" for k in SPLIT)
+    hdr += f" {'generator':>9} {'gen GFLOP':>9}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        if "error" in r:
+            continue
+        gen = f"{r['generator_ms']:.1f}" if r.get("generator_ms") is not None else "-"
+        print(f"{r['method']:<15} {r.get('head_width') or '-':>5} {r['n_splats']:>7} "
+              + " ".join(f"{r['split'][k]:>13.1f}" for k in SPLIT) + f" {gen:>9} {r['generator_flops'] / 1e9:>9.2f}")
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m src.bench training", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, help="write the rows as JSON here")
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"write the rows as JSON here ({DEFAULT_OUT})")
     ap.add_argument("--quick", action="store_true", help="10k splats, gs3d and splatfields3d, 3 iterations")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
@@ -188,6 +309,15 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
     if args.quick:
         args.iters, args.warmup = 3, 1
+    import torch
+
+    from src.bench.flops import measure_peaks
+    from src.fields.fused import cpu_has_native_bf16
+
+    peaks = {"float32": measure_peaks(torch.float32)}
+    peaks["bfloat16"] = measure_peaks(torch.bfloat16) if cpu_has_native_bf16() else peaks["float32"]
+    print("peaks GFLOP/s: " + ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} conv {p['conv_gflops']:.0f}"
+                                         for d, p in peaks.items()))
     rows = [_run_isolated(m, n, args) for n in sizes for m in methods]
     extra_widths = [int(w) for w in args.head_widths.split(",") if w]
     rows += [_run_isolated(r["method"], n, args, w) for n in sizes for w in extra_widths for r in list(rows)
@@ -197,10 +327,14 @@ def main(argv: list[str] | None = None) -> int:
                     None)
         if base and "error" not in r:
             r["ratio_vs_gs3d"] = r["iter_ms"] / base["iter_ms"]
+        if "error" not in r:
+            r["flop_floor_ms"] = flop_floor(r, peaks)
+            r["x_flop_floor"] = r["iter_ms"] / r["flop_floor_ms"] if r["flop_floor_ms"] > 0 else None
     print_table(rows)
     if args.out:
         from src.utils.record import write_json
 
-        write_json(args.out, {"rows": rows, "settings": vars(args) | {"out": str(args.out)}})
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        write_json(args.out, {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}})
         print(f"wrote {args.out}")
     return 0 if all("error" not in r for r in rows) else 1
