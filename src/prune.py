@@ -1,7 +1,7 @@
 """``python -m src.prune RUN_DIR [RUN_DIR ...] [--keep 0.5,0.25,0.1] [--max-loss-db 0.2] [--write]``
 
 Shrink a finished run's baked splat set to what the scene needs and state the PSNR it costs
-(issue "scene-sized models"; LightGaussian-style significance pruning, no fine-tuning).
+(LightGaussian-style significance pruning, no fine-tuning).
 
 Conventions: the run's ``splats.ply`` is its baked model (activated splats, DC colours: what the
 evaluator scores as ``baked_psnr``); significance is the blending weight alpha·T summed over the run's

@@ -21,7 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
 from src.init.stage1 import ensure_first_stage
-from src.io.ply import write_baked_ply
+from src.io.ply import scene_frames, write_baked_ply
 from src.trainer.guard import DivergenceError, DivergenceGuard
 from src.trainer.trainer import CheckpointError
 from src.utils.instantiate import ConfigError, build, check_targets
@@ -185,7 +185,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
         if unavailable:
             record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
         record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
-        write_baked_ply(model, run_dir)
+        write_baked_ply(model, run_dir, frames=scene_frames(scene))
         record["status"] = "ok"
         log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
                  record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
@@ -235,10 +235,14 @@ def _identity_overrides(overrides: list[str]) -> list[str]:
     return [o for o in overrides if o.split("=", 1)[0].lstrip("+~") not in _NEUTRAL_OVERRIDES]
 
 
+#: Model classes that always model motion (SplatFields does when ``model.network.dynamic`` is true).
+DYNAMIC_MODELS = ("src.models.deformable.DeformableGaussianModel",)
+
+
 def check_combination(cfg: DictConfig, scene) -> None:
     """Refuse, in one line, an experiment that models motion on a scene that has none."""
     dynamic_model = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or str(
-        OmegaConf.select(cfg, "model._target_", default="")).endswith("DeformableGaussians")
+        OmegaConf.select(cfg, "model._target_", default="")) in DYNAMIC_MODELS
     if dynamic_model and not scene.is_dynamic:
         raise ConfigError(
             f"experiment {cfg.get('experiment_name', 'default')!r} ({cfg.method}) models motion, but dataset "
@@ -285,7 +289,7 @@ def main(cfg: DictConfig) -> float | None:
     except INPUT_ERRORS as e:
         if not single:
             raise
-        log.error("%s", e)
+        print(f"error: {e}", file=sys.stderr)  # one line, no traceback (the record holds the error too)
         sys.exit(2)
     if single:
         print_summary(record, Path(record.get("run_dir", ".")))

@@ -18,6 +18,7 @@ import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -90,6 +91,35 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
+def _dotted_keys(data: Any, prefix: str = "", depth: int = 3) -> set[str]:
+    """Dotted paths of ``data``'s nested mappings, ``depth`` levels down (what --rows / --cols may name)."""
+    out: set[str] = set()
+    if isinstance(data, dict) and depth > 0:
+        for k, v in data.items():
+            path = f"{prefix}.{k}" if prefix else str(k)
+            if not isinstance(v, dict | list):
+                out.add(path)
+            out |= _dotted_keys(v, path, depth - 1)
+    return out
+
+
+def unknown_keys(records: Sequence, spec) -> str | None:
+    """A one-line message naming the row / column keys and metrics no record has, with the valid choices."""
+    keys: set[str] = set()
+    for r in records:
+        keys |= _dotted_keys(dict(r.data))
+    metrics = sorted({k.split(".", 1)[1] for k in keys if k.startswith("metrics.")})
+    for name in ("rows", "cols"):
+        missing = [k for k in getattr(spec, name) if k not in keys]
+        if missing:
+            choices = sorted(k for k in keys if k.split(".", 1)[0] in ("method", "experiment", "keys", "choices"))
+            return f"--{name}: no run has {', '.join(missing)}; choose from: {', '.join(choices)}"
+    missing = [m for m in spec.metrics if m not in metrics]
+    if missing and len(missing) == len(spec.metrics):
+        return f"--metrics: no run has {', '.join(missing)}; choose from: {', '.join(metrics)}"
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code."""
     args = parse_args(argv)
@@ -122,6 +152,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             spec = replace(spec, quoted=None)
     except ValueError as exc:
         print(f"error: bad report block: {exc}", file=sys.stderr)
+        return 2
+    unknown = unknown_keys(collection.records, spec)
+    if unknown:
+        print(f"error: {unknown}", file=sys.stderr)
         return 2
 
     text = render(build_report(collection.records, spec, collection.problems), args.format)

@@ -73,8 +73,8 @@ def test_unknown_rasterizer_lists_choices(tmp_path):
     assert not (tmp_path / "r" / "metrics.json").exists()
 
 
-# Every reader through the CLI on its shipped data, with the default method (issue: "python -m src.run
-# dataset=<each> dataset.root=<path> +ci=smoke works for each format").
+# Every reader through the CLI on its shipped data, with the default method
+# (`python -m src.run dataset=<each> dataset.root=<path> +ci=smoke` works for each format).
 SHIPPED_FORMATS = [
     ("blender", "static/plant"),
     ("blender_mv", "dynamic_mv/flag"),

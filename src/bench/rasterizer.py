@@ -511,6 +511,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=None,
                    help="torch/OpenMP threads for everything (default: torch's default)")
     args = p.parse_args(argv)
+    if args.reps is not None and args.reps < 1:
+        p.error(f"--reps {args.reps}: expected a positive number of timed repetitions")
+    if args.threads is not None and args.threads < 1:
+        p.error(f"--threads {args.threads}: expected a positive thread count")
+    for name in (s.strip() for s in args.scenes.split(",")):
+        if name not in SCENES:
+            p.error(f"--scenes: unknown scene {name!r}; choose from: {', '.join(sorted(SCENES))}")
     if args.from_json:
         try:
             with open(args.from_json) as f:

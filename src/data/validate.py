@@ -1,7 +1,7 @@
 """Checks of loaded cameras and images, shared by every reader; errors name the file or view and the field.
 
 A pose must be finite and rigid (rotation block orthonormal with determinant +1, last row 0 0 0 1);
-intrinsics finite with positive focal lengths; images at least :data:`MIN_SIDE` pixels and of the size
+intrinsics finite with positive focal lengths and the principal point inside the image; images at least :data:`MIN_SIDE` pixels and of the size
 their camera says. Readers call :func:`check_pose` / :func:`check_fov` / :func:`check_size` while
 parsing (so the message names the file and entry); :func:`validate_scene` checks every view of a
 loaded :class:`Scene` whatever reader made it.
@@ -80,6 +80,9 @@ def validate_scene(scene: Scene, source: str) -> None:
             if bad or cam.fx <= 0 or cam.fy <= 0:
                 raise DatasetError(f"{where}: intrinsics {intr} must be finite with fx, fy > 0")
             check_size(cam.height, cam.width, where)
+            if not (0.0 < cam.cx < cam.width and 0.0 < cam.cy < cam.height):
+                raise DatasetError(f"{where}: principal point ({cam.cx:.1f}, {cam.cy:.1f}) lies outside the "
+                                   f"{cam.width}x{cam.height} image: the image does not match its intrinsics")
             if tuple(v.image.shape) != (cam.height, cam.width, 3):
                 raise DatasetError(f"{where}: image of shape {tuple(v.image.shape)} does not match its intrinsics "
                                    f"({cam.height}x{cam.width} px, 3 channels expected)")

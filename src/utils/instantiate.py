@@ -124,11 +124,13 @@ def check_targets(cfg: Any, root: str = "") -> None:
         ConfigError: one line naming the node, the target and the offending key.
     """
     plain = OmegaConf.to_container(cfg, resolve=False) if isinstance(cfg, DictConfig | ListConfig) else cfg
-    for path, target in iter_targets(plain):
+    nodes = []
+    for path, target in iter_targets(plain):  # first every target against the allow-list ...
         if root == "" and path.split(".", 1)[0].split("[", 1)[0] == "hydra":
             continue
         where = root if path == "<root>" and root else (f"{root}.{path}" if root and path != "<root>" else path)
-        obj = _resolve_target(target, where)
+        nodes.append((path, target, where, _resolve_target(target, where)))
+    for path, target, where, obj in nodes:  # ... then each node's keys against its target's parameters
         accepted, names = _accepted(obj)
         if accepted is None:
             continue

@@ -66,7 +66,7 @@ def validate_run_config(cfg: DictConfig) -> None:
                     _require(cfg, f"optim.lr.{group}.{part}")
             else:
                 _require(cfg, f"optim.lr.{group}")
-    for key in ("init.n_points", "strategy.max_splats", "schedule.init_points", "schedule.max_splats"):
+    for key in ("schedule.init_points", "schedule.max_splats", "init.n_points", "strategy.max_splats"):
         _require(cfg, key, integer=True)
     _require(cfg, "dataset.n_views", integer=True)
     for key in ("dataset.downscale", "dataset.image_scale"):

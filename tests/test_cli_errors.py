@@ -1,0 +1,61 @@
+"""Command-line tools validate their arguments first: one line listing the valid choices, exit code 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=120)
+
+
+@pytest.fixture
+def sweep(tmp_path: Path) -> Path:
+    """A sweep directory holding one finished run record."""
+    run = tmp_path / "sweep" / "0"
+    run.mkdir(parents=True)
+    record = {"status": "ok", "method": "gs3d", "experiment": "gs3d", "keys": {"scene": "s", "n_views": 4, "seed": 0},
+              "metrics": {"psnr": 20.0, "ssim": 0.8}}
+    (run / "metrics.json").write_text(json.dumps(record))
+    return tmp_path / "sweep"
+
+
+@pytest.mark.parametrize("flag,value,needle", [
+    ("--rows", "nosuchkey", "--rows: no run has nosuchkey; choose from: "),
+    ("--cols", "keys.nope", "--cols: no run has keys.nope; choose from: "),
+    ("--metrics", "nope", "--metrics: no run has nope; choose from: psnr, ssim"),
+])
+def test_tables_unknown_key_lists_choices(sweep, flag, value, needle):
+    p = cli("src.tables", str(sweep), flag, value)
+    assert p.returncode == 2, p.stderr
+    assert needle in p.stderr and "Traceback" not in p.stderr
+    if flag != "--metrics":
+        assert "keys.n_views" in p.stderr and "method" in p.stderr  # the valid choices are listed
+
+
+def test_tables_valid_keys_still_work(sweep):
+    p = cli("src.tables", str(sweep), "--rows", "method", "--cols", "keys.n_views")
+    assert p.returncode == 0, p.stderr
+    assert "| gs3d |" in p.stdout
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--reps", "0"], "--reps 0: expected a positive number"),
+    (["--reps", "-3"], "--reps -3: expected a positive number"),
+    (["--scenes", "nosuch"], "--scenes: unknown scene 'nosuch'; choose from: cube, object"),
+])
+def test_bench_rasterizer_bad_arguments_fail_at_once(args, needle):
+    p = cli("src.bench", "rasterizer", *args)
+    assert p.returncode == 2 and needle in p.stderr, p.stderr
+
+
+def test_bench_unknown_subcommand():
+    p = cli("src.bench", "nosuch")
+    assert p.returncode == 2 and "rasterizer" in p.stdout + p.stderr
