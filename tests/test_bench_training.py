@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from src.bench.training import PARTS, main
+from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main
 
 
 def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
@@ -22,3 +22,38 @@ def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
     assert rows[2]["n_params"] < rows[1]["n_params"]  # narrower heads, fewer parameters
     assert rows[0]["backbone_ms"] is None and rows[1]["backbone_ms"] > 0  # the tri-plane CNN alone
     assert "x 3DGS" in capsys.readouterr().out
+
+
+def test_flop_counter_matches_hand_count_from_layer_shapes():
+    import torch
+
+    from src.bench.flops import count_flops, floor_ms
+    from src.fields.mlp import FieldMLP
+
+    n = 7
+    mlp = FieldMLP(5, 2, n_layers=3, width=4, skips=(2,))  # linears 5->4, 4->4, (5+4)->2
+    x = torch.randn(n, 5, requires_grad=True)
+    flops = count_flops(lambda: mlp(x).sum().backward())
+    # each linear: forward, grad of input, grad of weight = 3 products of 2·N·in·out FLOPs
+    assert flops == {"total": 3 * 2 * n * (5 * 4 + 4 * 4 + 9 * 2), "conv": 0, "matmul": 3 * 2 * n * 54}
+    conv = torch.nn.Conv2d(2, 3, 3, padding=1)
+    img = torch.randn(1, 2, 5, 5, requires_grad=True)
+    flops = count_flops(lambda: conv(img).sum().backward())
+    assert flops == {"total": 3 * 2 * 25 * 2 * 3 * 9, "conv": 3 * 2 * 25 * 2 * 3 * 9, "matmul": 0}
+    assert floor_ms({"conv": 2e9, "matmul": 1e9}, {"conv_gflops": 100.0, "matmul_gflops": 50.0}) == 40.0
+
+
+def test_training_bench_reports_flop_floor_and_split(tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["--methods", "gs3d,splatfields3d", "--sizes", "300", "--iters", "1", "--warmup", "0",
+                 "--width", "32", "--fps-width", "32", "--out", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["settings"]["peaks"]["float32"]["matmul_gflops"] > 0
+    gs, sf = data["rows"]
+    assert gs["flops"] == 0 and gs["x_flop_floor"] is None
+    assert sf["flops"] > sf["generator_flops"] > 0 and sf["flop_floor_ms"] > 0 and sf["x_flop_floor"] > 0
+    assert set(sf["split"]) == set(SPLIT) and sf["generator_ms"] > 0
+
+
+def test_default_output_path():
+    assert str(DEFAULT_OUT) == "sweeps/results/bench/training.json"

@@ -14,7 +14,8 @@ The floor: each row counts the FLOPs of its networks per iteration (forward + ba
 prediction, ``src.bench.flops.count_flops``; the rasterizer is not counted), ``generator_flops`` of
 the tri-plane CNN alone, and divides them by the machine's matmul and conv peaks measured at the start
 of the same run (``settings.peaks``): products that run under bf16 autocast (``precision`` "bf16":
-the fused heads) at the bf16 matmul peak, everything else at the float32 peaks. ``flop_floor_ms`` is
+the fused heads; ``generator_precision`` likewise for the CNN) at the bf16 peaks, everything else at
+the float32 peaks. ``flop_floor_ms`` is
 that time, ``x_flop_floor`` = ``iter_ms`` / ``flop_floor_ms``. ``split`` is a second, hook-timed
 loop of the same step: generator forward, heads forward, rasterizer (forward, loss and its backward
 until the splat attributes hold their gradients), heads backward (until the planes hold theirs),
@@ -155,20 +156,24 @@ def _flops(model, cam, field: bool) -> dict:
     gen = count_flops(generator) if field else {"total": 0, "conv": 0, "matmul": 0}
     net = getattr(model, "network", None)
     bf16 = bool(getattr(net, "fused", False) and getattr(net, "autocast_bf16", False))
-    return {"flops": tot["total"], "flops_conv": tot["conv"], "flops_matmul": tot["matmul"],
+    gen_bf16 = bool(getattr(getattr(net, "backbone", None), "autocast_bf16", False))
+    return {"generator_precision": "bf16" if gen_bf16 else "float32", "flops": tot["total"],
+             "flops_conv": tot["conv"], "flops_matmul": tot["matmul"],
             "generator_flops": gen["total"], "generator_flops_conv": gen["conv"],
             "precision": "bf16" if bf16 else "float32"}
 
 
 def flop_floor(row: dict, peaks: dict) -> float:
-    """Milliseconds of the row's FLOPs at the measured peaks (``settings.peaks``): the heads' products
-    at the bf16 matmul peak when they run under bf16 autocast, the rest at the float32 peaks."""
+    """Milliseconds of the row's FLOPs at the measured peaks (``settings.peaks``): the heads' and the
+    generator's FLOPs each at the bf16 peaks when that part runs under bf16 autocast (``precision``,
+    ``generator_precision``), else at the float32 peaks."""
     from src.bench.flops import floor_ms
 
     gen = {"conv": row["generator_flops_conv"], "matmul": row["generator_flops"] - row["generator_flops_conv"]}
     heads = {"conv": row["flops_conv"] - gen["conv"], "matmul": row["flops_matmul"] - gen["matmul"]}
     heads_peaks = peaks["bfloat16"] if row["precision"] == "bf16" else peaks["float32"]
-    return floor_ms(gen, peaks["float32"]) + floor_ms(heads, heads_peaks)
+    gen_peaks = peaks["bfloat16"] if row.get("generator_precision") == "bf16" else peaks["float32"]
+    return floor_ms(gen, gen_peaks) + floor_ms(heads, heads_peaks)
 
 
 def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int) -> dict[str, float]:
