@@ -179,6 +179,9 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
             record["metrics"]["stage1_train_s"] = stage1["train_s"]
         if "capacity" in record:  # so is the capacity search
             record["metrics"]["capacity_search_s"] = record["capacity"]["search_s"]
+        if train_stats.get("curve"):  # learning curve: held-out PSNR against iteration and training time
+            record["curve"] = train_stats["curve"]
+            record["curve_split"] = train_stats.get("curve_split")
         record["per_view"] = per_view
         if per_frame is not None:
             record["per_frame"] = per_frame
@@ -222,7 +225,11 @@ def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, gener
         return optim_factory(groups=m.param_groups(), extent=scene.extent)
 
     trainer = build(cfg.trainer)
-    stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir, generator, seed=cfg.seed)
+    scorer = build(cfg.eval).curve_scorer(scene, rasterizer) if cfg.eval.get("curve_every") else None
+    stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir, generator, seed=cfg.seed,
+                        curve=scorer[1] if scorer else None, curve_every=int(cfg.eval.get("curve_every") or 0))
+    if scorer:
+        stats["curve_split"] = scorer[0]
     return model, rasterizer, stats
 
 

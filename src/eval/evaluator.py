@@ -43,11 +43,16 @@ class Evaluator:
         perceptual: score LPIPS (only with user-supplied backbone weights) and ST-LPIPS (if installed) on the
             test views; what cannot be computed is recorded as unavailable, never as a number.
         perceptual_net: LPIPS backbone (``alex`` or ``vgg``).
+        curve_every: every this many iterations, score held-out views during training for the learning
+            curve (``metrics.json`` ``curve``); 0 = no curve.
+        curve_views: how many held-out views (evenly strided) the curve scores: the validation split
+            where the reader has one, else the test views (a report, never used to choose settings).
     """
 
     def __init__(self, save_renders: bool = True, quantise: bool = True, train_views: bool = True,
                  moran: bool = True, moran_k: int = 5, moran_max_splats: int = 50_000,
-                 fps_repeats: int = 3, perceptual: bool = True, perceptual_net: str = "alex") -> None:
+                 fps_repeats: int = 3, perceptual: bool = True, perceptual_net: str = "alex",
+                 curve_every: int = 0, curve_views: int = 4) -> None:
         self.save_renders = save_renders
         self.quantise = quantise
         self.train_views = train_views
@@ -57,6 +62,34 @@ class Evaluator:
         self.fps_repeats = fps_repeats
         self.perceptual = perceptual
         self.perceptual_net = perceptual_net
+        if curve_every < 0 or curve_views < 1:
+            raise ValueError(f"eval.curve_every={curve_every} must be >= 0 and eval.curve_views={curve_views} >= 1")
+        self.curve_every = curve_every
+        self.curve_views = curve_views
+
+    def curve_scorer(self, scene: Scene, rasterizer: Rasterizer) -> tuple[str, Callable[[SplatModel], float]] | None:
+        """(split name, model -> mean held-out PSNR) for learning curves, or None when ``curve_every`` is 0.
+
+        Scores up to ``curve_views`` evenly strided views of ``scene.val`` (``val``) or, where the reader
+        has no validation split, of ``scene.test`` (``test``), with the evaluation protocol (8-bit renders).
+        """
+        if not self.curve_every:
+            return None
+        split, pool = ("val", scene.val) if scene.val else ("test", scene.test)
+        if not pool:
+            return None
+        step = max(1, len(pool) // self.curve_views)
+        views = pool[::step][: self.curve_views]
+
+        @torch.no_grad()
+        def score(model: SplatModel) -> float:
+            was_training = model.training
+            model.eval()
+            value = views_psnr(model.splats, rasterizer, views, scene.background, self.quantise)
+            model.train(was_training)
+            return value
+
+        return split, score
 
     @torch.no_grad()
     def score_views(self, model: SplatModel, rasterizer: Rasterizer, views: list[View], background,

@@ -189,8 +189,14 @@ class Trainer:
     # -- main loop ---------------------------------------------------------------------------
     def fit(self, model: SplatModel, scene: Scene, rasterizer: Rasterizer, loss_fn: Callable,
             make_optimizer: Callable[[SplatModel], SplatOptimizer], strategy: Strategy, run_dir: Path,
-            generator: torch.Generator, seed: int = 0) -> dict:
-        """Optimise ``model``; returns training statistics (train_s, iter_ms, timing split, ...)."""
+            generator: torch.Generator, seed: int = 0, curve: Callable[[SplatModel], float] | None = None,
+            curve_every: int = 0) -> dict:
+        """Optimise ``model``; returns training statistics (train_s, iter_ms, timing split, ...).
+
+        With ``curve`` and ``curve_every`` > 0, ``curve(model)`` (a held-out PSNR) is recorded every
+        ``curve_every`` iterations and after the last one, as ``curve``: [{iteration, wall_s, psnr}],
+        ``wall_s`` being the training time so far (the scoring itself is not counted).
+        """
         run_dir = Path(run_dir)
         ckpt_path = run_dir / "checkpoint.pt"
         rng = random.Random(seed)
@@ -201,6 +207,7 @@ class Trainer:
         prev_train_s = 0.0
         resumed_timing: dict[str, float] = {}
         resumed_n_timed = 0
+        points: list[dict] = []
         if not self.resume:
             self.set_aside(ckpt_path)
         elif ckpt_path.is_file():
@@ -219,6 +226,7 @@ class Trainer:
             # timing sums make iter_ms cover the whole run (and defined if only evaluation was left).
             guard.running_psnr = ck["extra"].get("guard_running_psnr")
             resumed_timing, resumed_n_timed = ck["extra"].get("timing", {}), ck["extra"].get("n_timed", 0)
+            points = list(ck["extra"].get("curve", []))
             log.info("resumed from %s at iteration %d", ckpt_path, start)
 
         writer = None
@@ -232,6 +240,7 @@ class Trainer:
 
         def ckpt_extra() -> dict:  # everything besides model/optimizer/strategy/RNGs that a resume needs
             return {"train_s": prev_train_s + time.perf_counter() - t_start, "guard_running_psnr": guard.running_psnr,
+                    "curve": points,
                     "timing": dict(timing), "n_timed": n_timed}
 
         t_start = time.perf_counter()
@@ -266,6 +275,13 @@ class Trainer:
             if writer is not None and self.image_every and it % self.image_every == 0:
                 writer.add_image("train/render", renders[0].color.detach().clamp(0, 1), it, dataformats="HWC")
                 writer.add_image("train/gt", views[0].image, it, dataformats="HWC")
+            if curve is not None and curve_every > 0 and ((it + 1) % curve_every == 0 or it == self.iterations - 1):
+                t_curve = time.perf_counter()
+                value = curve(model)
+                points.append({"iteration": it + 1, "wall_s": prev_train_s + t_curve - t_start, "psnr": value})
+                if writer is not None:
+                    writer.add_scalar("heldout/psnr", value, it)
+                t_start += time.perf_counter() - t_curve  # the scoring is not training time
             if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
                 self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra())
         bar.close()
@@ -279,4 +295,4 @@ class Trainer:
         split = {f"{k}_ms": 1000 * v / n for k, v in timing.items()}
         iter_ms = sum(split.values()) if n_timed else math.nan
         return {"train_s": train_s, "iter_ms": iter_ms, "timing": split, "final_train_psnr": psnr_val,
-                "resumed_from": start}
+                "resumed_from": start, "curve": points}
