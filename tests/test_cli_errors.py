@@ -56,6 +56,19 @@ def test_bench_rasterizer_bad_arguments_fail_at_once(args, needle):
     assert p.returncode == 2 and needle in p.stderr, p.stderr
 
 
+@pytest.mark.parametrize("args,needle", [
+    (["--methods", "nosuch"], "--methods: unknown method(s) nosuch; choose from: gs3d, splatfields3d"),
+    (["--methods", "gs3d,nope"], "unknown method(s) nope"),
+    (["--sizes", "10k"], "--sizes '10k': expected comma-separated positive splat counts"),
+    (["--iters", "0"], "--iters 0: expected a positive number"),
+    (["--head-widths", "-4"], "--head-widths '-4': expected comma-separated positive widths"),
+    (["--rasterizer", "vulkan"], "--rasterizer 'vulkan': choose from: auto, cpu, torch_ref, gsplat"),
+])
+def test_bench_training_bad_arguments_fail_at_once(args, needle):
+    p = cli("src.bench", "training", *args)
+    assert p.returncode == 2 and needle in p.stderr, p.stderr
+
+
 def test_bench_unknown_subcommand():
     p = cli("src.bench", "nosuch")
     assert p.returncode == 2 and "rasterizer" in p.stdout + p.stderr

@@ -49,7 +49,7 @@ def written(one_thread, tmp_path_factory) -> dict[str, tuple[Path, fw.Truth]]:
     out = {
         "dnerf": (base / "dnerf", fw.write_dnerf(base / "dnerf", test_times=[0.05, 0.5, 0.97])),
         "blender_mv": (base / "blender_mv", fw.write_blender_mv(base / "blender_mv")),
-        "owlii": (base / "owlii", fw.write_owlii(base / "owlii", n_cams=10, n_frames=2, size=(16, 12))),
+        "owlii": (base / "owlii", fw.write_owlii(base / "owlii", n_cams=10, n_frames=2, size=(20, 16))),
         "dtu": (base / "dtu", fw.write_dtu(base / "dtu")),
         "nerfies": (base / "nerfies", fw.write_nerfies(base / "nerfies")),
     }
@@ -331,7 +331,7 @@ def test_owlii_protocols_and_frames(written):
     explicit = load("owlii", root, train_cameras=["cam_train_2", "cam_train_5"], frames=1)
     assert explicit.n_frames == 1 and len(explicit.train) == 2 and explicit.train[0].camera.time == 0.0
     half = load("owlii", root, n_views=4, downscale=2)
-    assert half.train[0].image.shape == (6, 8, 3) and half.train[0].mask.shape == (6, 8)
+    assert half.train[0].image.shape == (8, 10, 3) and half.train[0].mask.shape == (8, 10)
     assert half.train[0].camera.fx == pytest.approx(four.train[0].camera.fx / 2)
     assert half.train[0].camera.cx == pytest.approx(four.train[0].camera.cx / 2)
 

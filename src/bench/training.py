@@ -288,6 +288,37 @@ def print_table(rows: list[dict]) -> None:
               + " ".join(f"{r['split'][k]:>13.1f}" for k in SPLIT) + f" {gen:>9} {r['generator_flops'] / 1e9:>9.2f}")
 
 
+def _int_list(text: str) -> list[int] | None:
+    """Comma-separated integers, or None if ``text`` is not such a list."""
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        return None
+
+
+def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse bad arguments before any work (argparse error: one line, exit code 2)."""
+    methods = [m for m in args.methods.split(",") if m]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        ap.error(f"--methods: unknown method(s) {', '.join(unknown) or '(none given)'}; choose from: "
+                 f"{', '.join(METHODS)}")
+    sizes = _int_list(args.sizes)
+    if not sizes or any(n < 1 for n in sizes):
+        ap.error(f"--sizes {args.sizes!r}: expected comma-separated positive splat counts, e.g. 10000,50000")
+    if args.iters < 1:
+        ap.error(f"--iters {args.iters}: expected a positive number of timed iterations")
+    if args.warmup < 0:
+        ap.error(f"--warmup {args.warmup}: expected 0 or more warm-up iterations")
+    if args.width < 8 or args.fps_width < 8:
+        ap.error(f"--width {args.width} / --fps-width {args.fps_width}: expected at least 8 px")
+    widths = _int_list(args.head_widths) if args.head_widths else []
+    if widths is None or any(w < 1 for w in widths):
+        ap.error(f"--head-widths {args.head_widths!r}: expected comma-separated positive widths, e.g. 64,32")
+    if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
+        ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m src.bench training", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -306,6 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
     ap.add_argument("--head-width-single", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    check_arguments(ap, args)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
                                  args.fps_width, args.rasterizer, args.head_width_single)))
