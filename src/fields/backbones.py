@@ -84,9 +84,10 @@ class CNNTriplaneBackbone(FieldBackbone):
             16, 8, 20, 32, 4, 2, 32, False -> three 16×160×160 planes).
         refine: apply the 2-layer refinement MLP (B.2: "a tiny 2-layer MLP with 48 neurons").
         seed: noise seed; plane p uses ``seed + p``.
-        compile: run the generators through ``torch.compile`` (compiled on the first ``prepare``;
-            the state dict is unchanged). Measured on this 2-core CPU, one 80x80 generator's
-            forward+backward: 1.6x faster, after ~80 s of compilation; channels_last was slower.
+        compile: run the plane generation (stacked or per-plane path) through ``torch.compile``
+            (compiled on the first ``prepare``; the state dict is unchanged). Measured on this 2-core
+            CPU, one 80x80 generator's forward+backward on the per-plane path: 1.6x faster, after
+            ~80 s of compilation.
         autocast_bf16: run the generators under bfloat16 autocast (float32 master weights; the planes
             come back in bfloat16 and ``sample`` reads them in the points' dtype): ``True``, ``False``
             or ``"auto"`` (on where the CPU multiplies bfloat16 natively, AVX512-BF16/AMX, and the
