@@ -35,8 +35,9 @@ def test_every_option_of_every_group_instantiates(group, tmp_path):
 
     root = write_blender_scene(tmp_path / "scene", n_train=6, n_test=2, size=24)
     for opt in options(group):
+        # the default two-stage protocol reads init=from_run; other inits belong to the single-stage one
         cfg = _compose([f"{group}={opt}", f"dataset.root={root}", "init.run_dir=/nonexistent"]
-                       if opt == "from_run" else [f"{group}={opt}", f"dataset.root={root}"])
+                       if opt == "from_run" else [f"{group}={opt}", f"dataset.root={root}", "protocol=single_stage"])
         if opt == "none":  # placeholder options of methods without fields
             continue
         node = {"field": lambda c: c.model.network.backbone, "flow": lambda c: c.model.flow}.get(

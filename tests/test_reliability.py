@@ -119,7 +119,8 @@ def test_bad_camera_file_fails_before_training(scene_root, tmp_path, split, edit
 
 def test_downscale_that_leaves_too_few_pixels(scene_root, tmp_path):
     out = tmp_path / "run"
-    with pytest.raises(DatasetError, match=r"train/r_\d+\.png: image is 0x0 px after dataset\.downscale=1000; at least 8 px"):
+    needle = r"train/r_\d+\.png: image is 0x0 px after dataset\.downscale=1000; at least 8 px"
+    with pytest.raises(DatasetError, match=needle):
         run(config(scene_root, "dataset.downscale=1000"), out)
     assert_clean(out)
 

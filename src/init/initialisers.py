@@ -115,7 +115,10 @@ class FromRunInit(Initialiser):
                 "+experiment=splatfields3d_2stage trains it itself unless stage1.auto=false)"
             )
         pts = read_ply(path).means.float()
-        if self.hull_filter:
+        if self.hull_filter and any(v.mask is None for v in scene.train):
+            log.warning("init.hull_filter: the training views of %s have no masks; the first stage's centres "
+                        "are kept unfiltered", scene.name)
+        elif self.hull_filter:
             keep = inside_hull(pts.double(), [v.camera.to("cpu") for v in scene.train],
                                [v.mask.cpu() for v in scene.train])
             pts = pts[keep]
