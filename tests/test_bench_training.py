@@ -57,3 +57,16 @@ def test_training_bench_reports_flop_floor_and_split(tmp_path):
 
 def test_default_output_path():
     assert str(DEFAULT_OUT) == "sweeps/results/bench/training.json"
+
+
+@pytest.mark.parametrize("groups", [1, 3])
+def test_grouped_convolution_flops_match_a_hand_count(groups):
+    """Forward + both gradients of a (grouped) 3x3 conv: 3 x 2 x outputs x (C_in / groups) x 9."""
+    import torch
+
+    from src.bench.flops import count_flops
+
+    conv = torch.nn.Conv2d(96, 96, 3, padding=1, groups=groups, bias=False)
+    x = torch.randn(1, 96, 20, 20, requires_grad=True)
+    counted = count_flops(lambda: conv(x).sum().backward())
+    assert counted["conv"] == 3 * 2 * (96 * 20 * 20) * (96 // groups) * 9

@@ -22,11 +22,36 @@ MATMUL_OPS = ("mm", "addmm", "bmm", "baddbmm", "_scaled_dot_product_flash_attent
               "_scaled_dot_product_efficient_attention", "_scaled_dot_product_cudnn_attention")
 
 
+def conv_backward_flops(grad_out_shape, x_shape, w_shape, _bias, _stride, _padding, _dilation, transposed,
+                        _output_padding, _groups, output_mask, out_shape, **kwargs) -> int:
+    """FLOPs of ``aten.convolution_backward`` (shapes in, as FlopCounterMode passes them), groups included.
+
+    Each requested gradient (input: ``output_mask[0]``, weight: ``output_mask[1]``) costs as much as the
+    forward product: 2 x (elements of the non-transposed output) x (w_shape[1] * kernel size), where
+    ``w_shape[1]`` is already the per-group input channel count. torch's own formula prices the input
+    gradient of a grouped convolution as ungrouped (``groups`` times too much).
+    """
+    conv_out = x_shape if transposed else grad_out_shape  # [N, C_out, *spatial] of the forward product
+    per_output = 1
+    for d in w_shape[1:]:
+        per_output *= int(d)
+    n_out = int(conv_out[0]) * int(w_shape[0] if not transposed else conv_out[1])
+    for d in conv_out[2:]:
+        n_out *= int(d)
+    forward = 2 * n_out * per_output
+    return forward * (int(bool(output_mask[0])) + int(bool(output_mask[1])))
+
+
 def count_flops(fn: Callable[[], object]) -> dict[str, int]:
-    """FLOPs of running ``fn()`` once: ``{"total", "conv", "matmul"}`` (2 FLOPs per multiply-add)."""
+    """FLOPs of running ``fn()`` once: ``{"total", "conv", "matmul"}`` (2 FLOPs per multiply-add).
+
+    Convolution backward is priced by :func:`conv_backward_flops` (correct for grouped convolutions).
+    """
+    import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    with FlopCounterMode(display=False) as counter:
+    mapping = {torch.ops.aten.convolution_backward: conv_backward_flops}
+    with FlopCounterMode(display=False, custom_mapping=mapping) as counter:
         fn()
     conv = matmul = 0
     for op, n in counter.get_flop_counts().get("Global", {}).items():
