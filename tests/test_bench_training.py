@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main
 
 
