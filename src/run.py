@@ -193,8 +193,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
         log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
                  record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
     except DivergenceError as e:
-        kind = "collapse" if str(e).startswith("collapse:") else "divergence"
-        record.update(status="failed", reason=str(e) if kind == "collapse" else f"divergence: {e}", error=str(e))
+        reason = str(e) if str(e).startswith("collapse:") else f"divergence: {e}"
+        record.update(status="failed", reason=reason, error=str(e))
         log.error("run diverged: %s", e)
     except INPUT_ERRORS as e:
         record.update(status="failed", reason=f"invalid input: {e}", error=f"{type(e).__name__}: {e}")

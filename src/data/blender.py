@@ -30,11 +30,11 @@ def parse_background(background: str | list[float] | tuple[float, ...]) -> Tenso
     names = {"white": [1.0, 1.0, 1.0], "black": [0.0, 0.0, 0.0], "grey": [0.5, 0.5, 0.5]}
     if isinstance(background, str):
         if background not in names:
-            raise ValueError(f"dataset.background={background!r}: expected one of {sorted(names)} or 3 floats")
+            raise DatasetError(f"dataset.background={background!r}: expected one of {sorted(names)} or 3 floats")
         return torch.tensor(names[background])
     bg = torch.tensor([float(x) for x in background])
     if bg.shape != (3,):
-        raise ValueError(f"dataset.background must have 3 values, got {list(background)}")
+        raise DatasetError(f"dataset.background must have 3 values, got {list(background)}")
     return bg
 
 
@@ -152,7 +152,7 @@ class BlenderDataset(DatasetReader):
         if not self.root.is_dir():
             raise DatasetError(f"dataset.root={self.root} does not exist or is not a directory")
         if downscale <= 0:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0")
         self.n_views = n_views
         self.downscale = float(downscale)
         self.background = parse_background(background)

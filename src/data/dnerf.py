@@ -172,7 +172,7 @@ class DNerfDataset(DatasetReader):
         self.root = check_root(root)
         self.n_views = n_views  # checked in load() (config composition may set it before the reader is chosen)
         if downscale <= 0:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0")
         self.downscale = float(downscale)
         self.background = parse_background(background)
         self.n_test, self.n_val = n_test, n_val
@@ -200,7 +200,7 @@ class DNerfDataset(DatasetReader):
     def load(self) -> Scene:
         """Read the scene: all training frames, (strided) test/val views, normalised OpenCV cameras."""
         if self.n_views is not None:
-            raise ValueError(
+            raise DatasetError(
                 f"dataset.n_views={self.n_views}: a D-NeRF scene is monocular (one view per time step), so every "
                 "training frame is used; set dataset.n_views=null"
             )

@@ -50,12 +50,12 @@ class DTUDataset(DatasetReader):
                  n_test: int | None = None) -> None:
         self.root = check_root(root)
         if downscale <= 0:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0")
         if composite not in COMPOSITE_MODES:
-            raise ValueError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
+            raise DatasetError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
         self.train_ids = [int(i) for i in (PIXELNERF_TRAIN if train_ids is None else train_ids)]
         if n_views is not None and not 1 <= n_views <= len(self.train_ids):
-            raise ValueError(f"dataset.n_views={n_views} must be between 1 and {len(self.train_ids)} "
+            raise DatasetError(f"dataset.n_views={n_views} must be between 1 and {len(self.train_ids)} "
                              f"(the training-id list {self.train_ids})")
         self.n_views = n_views
         self.exclude_ids = [int(i) for i in (PIXELNERF_EXCLUDE if exclude_ids is None else exclude_ids)]

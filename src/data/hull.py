@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from src.core.cameras import Camera
+from src.data.base import DatasetError
 
 
 def inside_hull(points: Tensor, cameras: list[Camera], masks: list[Tensor], threshold: float = 0.0,
@@ -62,7 +63,7 @@ def hull_bounds(cameras: list[Camera], masks: list[Tensor], resolution: int = 64
     grid = torch.stack(torch.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3) + centre
     keep = inside_hull(grid, cameras, masks, threshold)
     if not keep.any():
-        raise ValueError("visual hull is empty: no point projects into the foreground of every training mask")
+        raise DatasetError("visual hull is empty: no point projects into the foreground of every training mask")
     pts = grid[keep]
     step = 2 * half / (resolution - 1)
     return pts.min(0).values - step, pts.max(0).values + step
@@ -86,7 +87,7 @@ def sample_hull(n: int, cameras: list[Camera], masks: list[Tensor], lo: Tensor, 
         if count >= n:
             break
     if count == 0:
-        raise ValueError("visual hull sampling found no points inside every training mask")
+        raise DatasetError("visual hull sampling found no points inside every training mask")
     pts = torch.cat(out)[:n]
     if pts.shape[0] < n:  # tiny hull: repeat with jitter rather than fail
         idx = torch.randint(pts.shape[0], (n - pts.shape[0],), generator=generator)

@@ -92,9 +92,9 @@ class BlenderMVDataset(DatasetReader):
                  protocol_cameras: dict | None = None) -> None:
         self.root = check_root(root)
         if downscale <= 0:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0")
         if frames is not None and frames < 1:
-            raise ValueError(f"dataset.frames={frames} must be >= 1 (or null for all)")
+            raise DatasetError(f"dataset.frames={frames} must be >= 1 (or null for all)")
         self.n_views = n_views
         self.camera_ids = None if camera_ids is None else [int(c) for c in camera_ids]
         self.downscale = float(downscale)
@@ -114,7 +114,7 @@ class BlenderMVDataset(DatasetReader):
         if self.camera_ids is None and self.n_views in self.protocol_cameras:
             chosen = self.protocol_cameras[self.n_views]
             if len(set(chosen)) != self.n_views:
-                raise ValueError(f"dataset.protocol_cameras[{self.n_views}]={chosen}: expected {self.n_views} "
+                raise DatasetError(f"dataset.protocol_cameras[{self.n_views}]={chosen}: expected {self.n_views} "
                                  "distinct camera ids")
             if set(chosen) <= set(available):
                 return sorted(chosen)
@@ -124,10 +124,10 @@ class BlenderMVDataset(DatasetReader):
         if self.camera_ids is not None:
             missing = sorted(set(self.camera_ids) - set(available))
             if missing:
-                raise ValueError(f"dataset.camera_ids={self.camera_ids}: cameras {missing} are not in the "
+                raise DatasetError(f"dataset.camera_ids={self.camera_ids}: cameras {missing} are not in the "
                                  f"training set (available: {available})")
             if self.n_views is not None and self.n_views != len(self.camera_ids):
-                raise ValueError(f"dataset.n_views={self.n_views} but dataset.camera_ids lists "
+                raise DatasetError(f"dataset.n_views={self.n_views} but dataset.camera_ids lists "
                                  f"{len(self.camera_ids)} cameras: set one of them (or make them agree)")
             return sorted(set(self.camera_ids))
         centres = np.stack([np.mean([r["centre"] for r in recs if r["camera_id"] == c], axis=0) for c in available])

@@ -93,9 +93,9 @@ class NerfiesDataset(DatasetReader):
         self.root = check_root(root)
         self.n_views = n_views  # checked in load()
         if downscale <= 0 or image_scale < 1:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0 and image_scale={image_scale} >= 1")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0 and image_scale={image_scale} >= 1")
         if composite not in COMPOSITE_MODES:
-            raise ValueError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
+            raise DatasetError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
         self.image_scale = int(image_scale)
         self.downscale = float(downscale)
         self.background = parse_background(background)
@@ -131,7 +131,7 @@ class NerfiesDataset(DatasetReader):
     def load(self) -> Scene:
         """Read the scene: train_ids as training views, val_ids as test views, OpenCV cameras."""
         if self.n_views is not None:
-            raise ValueError(f"dataset.n_views={self.n_views}: the Nerfies layout defines its training views "
+            raise DatasetError(f"dataset.n_views={self.n_views}: the Nerfies layout defines its training views "
                              "(dataset.json train_ids); set dataset.n_views=null")
         check_format(self.root, "nerfies")
         ds = read_json(self.root / "dataset.json", "dataset file")

@@ -146,7 +146,7 @@ def load_rgb_mask(image_path: Path, mask_path: Path | None, background: Tensor, 
     mask file uses its alpha as mask, composited as straight alpha.
     """
     if composite not in COMPOSITE_MODES:
-        raise ValueError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
+        raise DatasetError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
     img = read_image(image_path)
     if img.shape[-1] not in (1, 3, 4):
         raise DatasetError(f"{image_path}: expected a grey, RGB or RGBA image, got {img.shape[-1]} channels")
@@ -245,16 +245,16 @@ class OwliiDataset(DatasetReader):
         self.root = check_root(root)
         if camera_ids is not None:  # the experiments' camera numbers, e.g. [1, 3, 6, 8] -> cam_train_1, ...
             if train_cameras is not None:
-                raise ValueError("dataset.camera_ids and dataset.train_cameras both set: give one of them")
+                raise DatasetError("dataset.camera_ids and dataset.train_cameras both set: give one of them")
             if not all(isinstance(c, int) and c >= 0 for c in camera_ids):
-                raise ValueError(f"dataset.camera_ids={list(camera_ids)}: expected non-negative integers")
+                raise DatasetError(f"dataset.camera_ids={list(camera_ids)}: expected non-negative integers")
             train_cameras = [f"cam_train_{int(c)}" for c in camera_ids]
         if downscale <= 0:
-            raise ValueError(f"dataset.downscale={downscale} must be > 0")
+            raise DatasetError(f"dataset.downscale={downscale} must be > 0")
         if composite not in COMPOSITE_MODES:
-            raise ValueError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
+            raise DatasetError(f"dataset.composite={composite!r}: expected one of {COMPOSITE_MODES}")
         if frames is not None and frames < 1:
-            raise ValueError(f"dataset.frames={frames} must be >= 1 (or null for all)")
+            raise DatasetError(f"dataset.frames={frames} must be >= 1 (or null for all)")
         self.n_views = n_views
         self.train_cameras = None if train_cameras is None else [str(c) for c in train_cameras]
         self.test_cameras = None if test_cameras is None else [str(c) for c in test_cameras]
@@ -280,7 +280,7 @@ class OwliiDataset(DatasetReader):
         """Training camera folders (see ``n_views`` / ``train_cameras``)."""
         if self.train_cameras is not None:
             if self.n_views is not None and self.n_views != len(self.train_cameras):
-                raise ValueError(f"dataset.n_views={self.n_views} but dataset.train_cameras lists "
+                raise DatasetError(f"dataset.n_views={self.n_views} but dataset.train_cameras lists "
                                  f"{len(self.train_cameras)} cameras")
             return list(self.train_cameras)
         if self.n_views is None or self.n_views == len(available):

@@ -1,10 +1,10 @@
 """Checks of loaded cameras and images, shared by every reader; errors name the file or view and the field.
 
 A pose must be finite and rigid (rotation block orthonormal with determinant +1, last row 0 0 0 1);
-intrinsics finite with positive focal lengths and the principal point inside the image; images at least :data:`MIN_SIDE` pixels and of the size
-their camera says. Readers call :func:`check_pose` / :func:`check_fov` / :func:`check_size` while
-parsing (so the message names the file and entry); :func:`validate_scene` checks every view of a
-loaded :class:`Scene` whatever reader made it.
+intrinsics finite with positive focal lengths and the principal point inside the image; images at
+least :data:`MIN_SIDE` pixels and of the size their camera says. Readers call :func:`check_pose`,
+:func:`check_fov` and :func:`check_size` while parsing (so the message names the file and entry);
+:func:`validate_scene` checks every view of a loaded :class:`Scene` whatever reader made it.
 """
 
 from __future__ import annotations

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from src.data.base import DatasetError
+
 
 def kmeans(points: np.ndarray, k: int, seed: int = 0, n_init: int = 10, iters: int = 300) -> np.ndarray:
     """Cluster centres [k, D] of ``points`` [N, D] (best of ``n_init`` k-means++ runs by inertia)."""
@@ -37,13 +39,13 @@ def kmeans(points: np.ndarray, k: int, seed: int = 0, n_init: int = 10, iters: i
 def select_views(centres: np.ndarray, n_views: int | None, seed: int = 0) -> list[int]:
     """Indices of ``n_views`` training cameras spread over the camera centres [N, 3].
 
-    ``None`` (or n_views == N) keeps every view. Raises ValueError for n_views outside [1, N].
+    ``None`` (or n_views == N) keeps every view. Raises DatasetError (a ValueError) for n_views outside [1, N].
     """
     n = len(centres)
     if n_views is None or n_views == n:
         return list(range(n))
     if not 1 <= n_views <= n:
-        raise ValueError(f"dataset.n_views={n_views} must be between 1 and the {n} available training views")
+        raise DatasetError(f"dataset.n_views={n_views} must be between 1 and the {n} available training views")
     c = kmeans(np.asarray(centres, dtype=np.float64), n_views, seed=seed)
     chosen: list[int] = []
     for centre in c:
