@@ -46,26 +46,19 @@ def test_tables_valid_keys_still_work(sweep):
     assert "| gs3d |" in p.stdout
 
 
-@pytest.mark.parametrize("args,needle", [
-    (["--reps", "0"], "--reps 0: expected a positive number"),
-    (["--reps", "-3"], "--reps -3: expected a positive number"),
-    (["--scenes", "nosuch"], "--scenes: unknown scene 'nosuch'; choose from: cube, object"),
+@pytest.mark.parametrize("sub,args,needle", [
+    ("rasterizer", ["--reps", "0"], "--reps 0: expected a positive number"),
+    ("rasterizer", ["--reps", "-3"], "--reps -3: expected a positive number"),
+    ("rasterizer", ["--scenes", "nosuch"], "--scenes: unknown scene 'nosuch'; choose from: cube, object"),
+    ("training", ["--methods", "nosuch"], "--methods: unknown method(s) nosuch; choose from: gs3d, splatfields3d"),
+    ("training", ["--methods", "gs3d,nope"], "unknown method(s) nope"),
+    ("training", ["--sizes", "10k"], "--sizes '10k': expected comma-separated positive splat counts"),
+    ("training", ["--iters", "0"], "--iters 0: expected a positive number"),
+    ("training", ["--head-widths", "-4"], "--head-widths '-4': expected comma-separated positive widths"),
+    ("training", ["--rasterizer", "vulkan"], "--rasterizer 'vulkan': choose from: auto, cpu, torch_ref, gsplat"),
 ])
-def test_bench_rasterizer_bad_arguments_fail_at_once(args, needle):
-    p = cli("src.bench", "rasterizer", *args)
-    assert p.returncode == 2 and needle in p.stderr, p.stderr
-
-
-@pytest.mark.parametrize("args,needle", [
-    (["--methods", "nosuch"], "--methods: unknown method(s) nosuch; choose from: gs3d, splatfields3d"),
-    (["--methods", "gs3d,nope"], "unknown method(s) nope"),
-    (["--sizes", "10k"], "--sizes '10k': expected comma-separated positive splat counts"),
-    (["--iters", "0"], "--iters 0: expected a positive number"),
-    (["--head-widths", "-4"], "--head-widths '-4': expected comma-separated positive widths"),
-    (["--rasterizer", "vulkan"], "--rasterizer 'vulkan': choose from: auto, cpu, torch_ref, gsplat"),
-])
-def test_bench_training_bad_arguments_fail_at_once(args, needle):
-    p = cli("src.bench", "training", *args)
+def test_bench_bad_arguments_fail_at_once(sub, args, needle):
+    p = cli("src.bench", sub, *args)
     assert p.returncode == 2 and needle in p.stderr, p.stderr
 
 

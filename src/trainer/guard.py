@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from src.eval.metrics import mean_finite, psnr
+
 if TYPE_CHECKING:
     from src.data.base import Scene
     from src.models.base import SplatModel
@@ -141,11 +143,7 @@ def _distinct_cameras(scene: Scene, limit: int = 16) -> list:
 
 
 def _mean_psnr_of_background(scene: Scene) -> float:
-    """Mean PSNR over the test views (training views if none) of the plain background image."""
+    """Mean PSNR (the evaluator's metric) over the test views (training views if none) of the plain background."""
     views = scene.test or scene.train
-    vals = []
-    for v in views:
-        mse = float(((v.image.double() - scene.background.double().reshape(1, 1, 3).to(v.image.device)) ** 2).mean())
-        vals.append(math.inf if mse == 0 else -10.0 * math.log10(mse))
-    finite = [x for x in vals if math.isfinite(x)]
-    return sum(finite) / len(finite) if finite else math.inf
+    return mean_finite([psnr(scene.background.reshape(1, 1, 3).to(v.image).expand_as(v.image), v.image)
+                        for v in views])
