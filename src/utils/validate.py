@@ -24,9 +24,9 @@ def _number(value: Any) -> float | None:
     return float(value)
 
 
-def _require(cfg: DictConfig, key: str, positive: bool = True, integer: bool = False, allow_null: bool = True,
+def _require(cfg: DictConfig, key: str, integer: bool = False, allow_null: bool = True,
              minimum: float | None = None) -> None:
-    """Check ``cfg.<key>`` (dotted) if present: a finite number, > 0 (or >= minimum), an integer if asked."""
+    """Check ``cfg.<key>`` (dotted) if present: a finite number > 0 (or >= ``minimum``), an integer if asked."""
     if OmegaConf.select(cfg, key, default="__absent__") == "__absent__":
         return
     value = OmegaConf.select(cfg, key)
@@ -40,7 +40,7 @@ def _require(cfg: DictConfig, key: str, positive: bool = True, integer: bool = F
         what = f"{'an integer' if integer else 'a number'} >= {minimum:g}"
     if x is None or not math.isfinite(x) or (integer and x != int(x)):
         raise ConfigValueError(f"{key}={value!r}: expected {what}")
-    if (minimum is not None and x < minimum) or (minimum is None and positive and x <= 0):
+    if (minimum is not None and x < minimum) or (minimum is None and x <= 0):
         raise ConfigValueError(f"{key}={value!r}: expected {what}")
 
 
@@ -53,8 +53,7 @@ def validate_run_config(cfg: DictConfig) -> None:
     """
     _require(cfg, "trainer.iterations", integer=True, allow_null=False)
     _require(cfg, "trainer.views_per_step", integer=True)
-    for key in ("trainer.log_every",):
-        _require(cfg, key, integer=True)
+    _require(cfg, "trainer.log_every", integer=True)
     for key in ("trainer.ckpt_every", "trainer.image_every"):
         _require(cfg, key, integer=True, minimum=0)
     lr = OmegaConf.select(cfg, "optim.lr")
