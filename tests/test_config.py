@@ -84,3 +84,17 @@ def test_contract_keys_exist():
     cfg = _compose([])
     for key in ("dataset.root", "dataset.n_views", "trainer.iterations", "seed"):
         assert OmegaConf.select(cfg, key, default="__missing__") != "__missing__", key
+
+
+@pytest.mark.parametrize("extra", [[], ["+ablation=no_norm"], ["+ablation=mlp_backbone"]])
+def test_two_stage_experiment_is_the_main_job(extra):
+    """`+experiment=splatfields3d_2stage` composes the same model, strategy and init as `python -m src.run`.
+
+    The experiment extends `splatfields3d`, which selects densification for the single-stage protocol;
+    the two-stage protocol keeps its query points fixed, so the experiment must not inherit it.
+    """
+    main = _compose(extra)
+    exp = _compose(["+experiment=splatfields3d_2stage", *extra])
+    for key in ("strategy", "init", "model", "stage1", "loss", "optim", "trainer"):
+        assert OmegaConf.to_container(exp[key]) == OmegaConf.to_container(main[key]), key
+    assert exp.strategy._target_.endswith("NoDensification")
