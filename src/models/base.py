@@ -46,6 +46,15 @@ class SplatModel(nn.Module, ABC):
     def on_step(self, iteration: int) -> None:
         """Called at the start of every training iteration (e.g. to raise the SH degree)."""
 
+    def bind(self, scene) -> None:
+        """Called once before training (and before a checkpoint is resumed) with the :class:`Scene`,
+        for models that need its training cameras (Mip-Splatting's 3D filter); nothing by default."""
+
+    def regularisers(self, iteration: int) -> dict[str, Tensor]:
+        """Weighted loss terms of the model's own parameters at ``iteration`` (scalar tensors), added to
+        the objective's total by the trainer; none by default."""
+        return {}
+
     # -- densification interface (per-splat state) -------------------------------------------
     def canonical_means(self) -> Tensor:
         """[N, 3] per-splat positions the densification acts on."""

@@ -152,6 +152,7 @@ class Trainer:
                    generator: torch.Generator, background: torch.Tensor) -> dict:
         """Render ``views``, back-propagate the loss, step the optimiser and the strategy.
 
+        The loss is the objective's ``total`` plus the model's :meth:`SplatModel.regularisers`.
         Returns dict(terms, renders, dens (strategy stats), psnr (mean over views), lrs, timing) where
         timing holds seconds spent in field (splat prediction), rasterizer (forward), backward and
         optimizer (optimiser + strategy).
@@ -172,6 +173,10 @@ class Trainer:
         if not terms["total"].requires_grad:  # nothing of the model reached any rendered pixel
             raise DivergenceError(f"collapse: no splat is visible in the training view(s) "
                                   f"{[c.name for c in cams]} at iteration {it} (the loss has no gradient)")
+        reg = model.regularisers(it)  # e.g. 4DGaussians' plane TV: terms of the model's parameters, not of renders
+        if reg:
+            terms = {**terms, **reg, "total": terms["total"] + sum(reg.values())}
+            guard.check_loss(terms["total"], it)
         terms["total"].backward()
         t3 = time.perf_counter()
         guard.check_gradients(model.parameters(), it)
@@ -202,6 +207,7 @@ class Trainer:
         rng = random.Random(seed)
         guard = DivergenceGuard(**self.guard_cfg)
         optimizer = make_optimizer(model)
+        model.bind(scene)
         strategy.bind(scene, rasterizer)
         start = 0
         prev_train_s = 0.0
