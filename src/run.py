@@ -243,7 +243,7 @@ def _identity_overrides(overrides: list[str]) -> list[str]:
 
 
 #: Model classes that always model motion (SplatFields does when ``model.network.dynamic`` is true).
-DYNAMIC_MODELS = ("src.models.deformable.DeformableGaussianModel",)
+DYNAMIC_MODELS = ("src.models.deformable.DeformableGaussianModel", "src.models.gaussians4d.HexPlaneGaussianModel")
 
 
 def check_combination(cfg: DictConfig, scene) -> None:

@@ -20,8 +20,8 @@ from tests.scenes import write_blender_scene
 REPO = Path(__file__).resolve().parents[1]
 STATIC = ["gs3d", "gs3d_auto", "gs3d_moran", "gs3d_stage1", "sf_cnn", "sf_mlp", "sf_mlp_norm", "splatfields3d",
           "splatfields3d_2stage"]
-MULTIVIEW = ["splatfields4d", "owl_4view", "owl_6view", "owl_8view", "owl_10view", "deformable3dgs"]
-MONOCULAR = ["monocular", "deformable3dgs_monocular"]
+MULTIVIEW = ["splatfields4d", "owl_4view", "owl_6view", "owl_8view", "owl_10view", "deformable3dgs", "gaussians4d"]
+MONOCULAR = ["monocular", "deformable3dgs_monocular", "gaussians4d_monocular"]
 MEANT_FOR = {"static": ("blender", "dtu"), "multiview": ("blender_mv", "owlii"), "monocular": ("dnerf", "nerfies")}
 CASES = ([(e, d) for e in STATIC for d in MEANT_FOR["static"]]
          + [(e, d) for e in MULTIVIEW for d in MEANT_FOR["multiview"]]
