@@ -12,6 +12,10 @@ rasterizer (Kerbl et al. 2023):
   alpha < 1/255; front-to-back compositing in a stable depth order, stopping before the splat that
   would take the transmittance T below 1e-4; the background adds T_final * bg.
 * Conventions: OpenCV cameras, pixel (i, j) centred at (i + 0.5, j + 0.5), colours [H, W, C].
+
+Every backend also takes ``antialiased=True``: Mip-Splatting's 2D Mip filter (Yu et al. 2024,
+Sec. 5.2) in place of the 0.3 dilation, Sigma2D + ``filter_2d`` I (0.1) with the opacity multiplied by
+sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
 """
 
 from src.rasterizer.base import Rasterizer

@@ -146,7 +146,7 @@ def load_extension(verbose: bool = False) -> Any:
     Returns:
         The ``torch.ops.splatfields_cpu`` namespace (rasterizer: ``forward``, ``backward``,
         ``fast_exp``, ``depth_order``, ``has_avx2``; projection: ``project_forward``,
-        ``project_backward``).
+        ``project_backward`` and the antialiased ``project_forward_aa``, ``project_backward_aa``).
 
     Raises:
         RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).

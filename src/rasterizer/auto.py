@@ -11,19 +11,25 @@ from src.rasterizer.base import Rasterizer
 log = logging.getLogger(__name__)
 
 
-def auto_rasterizer() -> Rasterizer:
-    """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort."""
+def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1) -> Rasterizer:
+    """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort.
+
+    Args:
+        antialiased: Mip-Splatting's 2D Mip filter instead of 3DGS's dilation (every backend).
+        filter_2d: the 2D Mip filter's variance in pixels^2 (Mip-Splatting: 0.1).
+    """
+    aa = {"antialiased": antialiased, "filter_2d": filter_2d}
     if torch.cuda.is_available():
         try:
             from src.rasterizer.gsplat_backend import GsplatRasterizer
 
-            return GsplatRasterizer()
+            return GsplatRasterizer(**aa)
         except ImportError as e:
             log.warning("CUDA present but gsplat unavailable (%s); trying the cpu kernel", e)
     try:
         from src.rasterizer.cpu import CpuRasterizer
 
-        rast = CpuRasterizer()
+        rast = CpuRasterizer(**aa)
         ensure = getattr(rast, "ensure_built", None)
         if ensure is not None:
             ensure()
@@ -33,4 +39,4 @@ def auto_rasterizer() -> Rasterizer:
                     type(e).__name__, e)
     from src.rasterizer.torch_ref import TorchRefRasterizer
 
-    return TorchRefRasterizer()
+    return TorchRefRasterizer(**aa)

@@ -10,6 +10,10 @@ memory. Two compiled parts, each with a hand-written backward:
   depth appended as an extra feature channel, the background term and alpha = 1 - T_final (backward
   also w.r.t. the background).
 
+``antialiased=True`` replaces 3DGS's screen-space dilation by Mip-Splatting's 2D Mip filter (the
+projection's compensation multiplies the opacities before compositing; same semantics as
+``TorchRefRasterizer(antialiased=True)``).
+
 The extension is built on the first render (or :func:`ensure_built`), never at import; see
 :mod:`src.rasterizer._build` for the cache location and flags.
 """
@@ -25,7 +29,7 @@ from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
 from src.rasterizer._build import load_extension
 from src.rasterizer.base import Rasterizer
-from src.rasterizer.projection import project_splats
+from src.rasterizer.projection import EPS2D, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
 
 PROJECTIONS = ("fused", "torch")
@@ -134,6 +138,11 @@ class CpuRasterizer(Rasterizer):
             the remaining splats at once when after a window fewer than 1/8 of the image's
             half-rows have terminated. The windows never change the result (bit-identical to one
             window, tested); a value >= the number of splats gives the plain single binning.
+        antialiased: Mip-Splatting's 2D Mip filter (Yu et al. 2024, Sec. 5.2) instead of 3DGS's
+            0.3 px^2 dilation: Sigma2D + filter_2d I, opacities times
+            sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
+        filter_2d: variance (pixels^2) of the 2D Mip filter (Mip-Splatting: 0.1); unused unless
+            ``antialiased``.
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
@@ -151,13 +160,15 @@ class CpuRasterizer(Rasterizer):
     name = "cpu"
 
     def __init__(self, cull: bool = True, count_pairs: bool = False, projection: str = "fused",
-                 first_window: int = 0) -> None:
+                 first_window: int = 0, antialiased: bool = False, filter_2d: float = 0.1) -> None:
         if projection not in PROJECTIONS:
             raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
         self.first_window = int(first_window)
         self.cull = bool(cull)
         self.count_pairs = bool(count_pairs)
         self.projection = projection
+        self.antialiased = bool(antialiased)
+        self.filter_2d = float(filter_2d)
         self._stats: Tensor | None = None
 
     def ensure_built(self, verbose: bool = False) -> None:
@@ -186,11 +197,17 @@ class CpuRasterizer(Rasterizer):
         background = background.to(dtype=dtype)
 
         project = project_splats_fused if self.projection == "fused" else project_splats
-        proj = project(splats.means, splats.quats, splats.scales, camera)
+        if self.antialiased:
+            proj = project(splats.means, splats.quats, splats.scales, camera, eps2d=self.filter_2d,
+                           antialiased=True)
+            opacities = splats.opacities * proj.compensation  # [N]
+        else:
+            proj = project(splats.means, splats.quats, splats.scales, camera, eps2d=EPS2D)
+            opacities = splats.opacities
         color, alpha, depth, stats = _RasterizeFunction.apply(
             proj.means2d.contiguous(),
             proj.conics.contiguous(),
-            splats.opacities.contiguous(),
+            opacities.contiguous(),
             splats.colors.contiguous(),  # [N, C]
             proj.depths.contiguous(),  # [N] sort key and depth feature (differentiable)
             proj.radii.to(torch.int32).contiguous(),
@@ -206,4 +223,5 @@ class CpuRasterizer(Rasterizer):
         return RenderOutput(color=color, alpha=alpha, depth=depth, means2d=proj.means2d, radii=proj.radii)
 
     def __repr__(self) -> str:
-        return f"CpuRasterizer(cull={self.cull}, projection={self.projection!r})"
+        aa = ", antialiased=True" if self.antialiased else ""
+        return f"CpuRasterizer(cull={self.cull}, projection={self.projection!r}{aa})"

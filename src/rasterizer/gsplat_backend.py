@@ -6,7 +6,9 @@ Semantic differences from the 3DGS rules that ``torch_ref``/``cpu`` follow, and 
 * pixel centres: gsplat samples pixel (i, j) at (i + 0.5, j + 0.5) and projects u = fx x / z + cx, the
   same convention as this project: nothing to reconcile.
 * near plane: 3DGS culls splats with z <= 0.2; ``near_plane`` defaults to 0.2 here (gsplat: 0.01).
-* low-pass filter ``eps2d`` = 0.3 in both.
+* low-pass filter ``eps2d`` = 0.3 in both; with ``antialiased`` gsplat's ``rasterize_mode="antialiased"``
+  with ``eps2d`` = ``filter_2d`` (Mip-Splatting's 2D Mip filter: Sigma2D + 0.1 I, opacities times
+  sqrt(det(Sigma2D) / det(Sigma2D + 0.1 I)), as the ``antialiased`` cpu and torch_ref backends).
 * radius / tile rule: gsplat bounds splats by ~3.33 sigma per axis instead of 3 sqrt(lambda_max), and its
   alpha clamp (0.99 in its CUDA kernel; 0.999 in its torch reference) and transmittance cut-off may
   differ; renders agree with ``torch_ref`` up to these border effects (GPU-only parity test).
@@ -29,12 +31,15 @@ class GsplatRasterizer(Rasterizer):
 
     Args:
         near_plane: cull splats closer than this (3DGS: 0.2).
-        rasterize_mode: ``classic`` (3DGS) or ``antialiased`` (Mip-Splatting-style compensation).
+        antialiased: Mip-Splatting's 2D Mip filter (gsplat ``rasterize_mode="antialiased"``) instead of
+            3DGS's dilation (``classic``).
+        filter_2d: variance (pixels^2) of the 2D Mip filter, gsplat's ``eps2d`` when ``antialiased``
+            (Mip-Splatting: 0.1).
     """
 
     name = "gsplat"
 
-    def __init__(self, near_plane: float = 0.2, rasterize_mode: str = "classic") -> None:
+    def __init__(self, near_plane: float = 0.2, antialiased: bool = False, filter_2d: float = 0.1) -> None:
         if not torch.cuda.is_available():
             raise RuntimeError("rasterizer=gsplat needs a CUDA GPU; use rasterizer=cpu or rasterizer=auto")
         try:
@@ -42,7 +47,9 @@ class GsplatRasterizer(Rasterizer):
         except ImportError as e:
             raise ImportError("rasterizer=gsplat needs the optional extra: pip install -e '.[cuda]'") from e
         self.near_plane = near_plane
-        self.rasterize_mode = rasterize_mode
+        self.antialiased = bool(antialiased)
+        self.eps2d = float(filter_2d) if self.antialiased else 0.3
+        self.rasterize_mode = "antialiased" if self.antialiased else "classic"
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
         from gsplat import rasterization
@@ -55,7 +62,7 @@ class GsplatRasterizer(Rasterizer):
         view = camera.world_to_cam.to(dev, splats.means.dtype)[None]
         colors, alphas, meta = rasterization(
             splats.means, torch.nn.functional.normalize(splats.quats, dim=-1), splats.scales, splats.opacities,
-            splats.colors, view, K, camera.width, camera.height, near_plane=self.near_plane, eps2d=0.3,
+            splats.colors, view, K, camera.width, camera.height, near_plane=self.near_plane, eps2d=self.eps2d,
             packed=False, render_mode="RGB+ED", rasterize_mode=self.rasterize_mode, backgrounds=None,
         )
         alpha = alphas[0, ..., 0]

@@ -18,6 +18,10 @@ from src.core.cameras import Camera
 NEAR_PLANE = 0.2  # 3DGS in_frustum: splats with camera depth <= 0.2 are culled
 FRUSTUM_CLAMP = 1.3  # 3DGS clamps x/z, y/z to 1.3x the half-FoV before the Jacobian
 EPS2D = 0.3  # 3DGS low-pass filter added to the 2D covariance diagonal (pixels^2)
+# Floor of det(Sigma2D) / det(Sigma2D + eps2d I) in the antialiased (Mip-Splatting 2D Mip filter) mode:
+# the opacity factor stays >= sqrt(1e-6) = 1e-3, so such a splat's alpha is < 1/255 (it never blends,
+# the render is exact) while the factor's gradient stays finite for degenerate footprints.
+AA_RATIO_MIN = 1e-6
 TILE = 16  # 3DGS tile size (pixels)
 
 
@@ -31,6 +35,8 @@ class Projected:
         depths: [N] camera-space z.
         radii: [N] int32 pixel radius, 0 if culled.
         visible: [N] bool, not culled.
+        compensation: [N] opacity factor sqrt(det(Sigma2D) / det(Sigma2D + eps2d I)) of the
+            antialiased mode (Mip-Splatting's 2D Mip filter), None in the 3DGS mode.
     """
 
     means2d: Tensor
@@ -38,6 +44,7 @@ class Projected:
     depths: Tensor
     radii: Tensor
     visible: Tensor
+    compensation: Tensor | None = None
 
 
 def quat_scale_to_cov3d(quats: Tensor, scales: Tensor) -> tuple[Tensor, ...]:
@@ -74,12 +81,18 @@ def quat_scale_to_cov3d(quats: Tensor, scales: Tensor) -> tuple[Tensor, ...]:
     return c00, c01, c02, c11, c12, c22
 
 
-def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera) -> Projected:
+def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera, eps2d: float = EPS2D,
+                   antialiased: bool = False) -> Projected:
     """Project 3D Gaussians into ``camera`` with the 3DGS EWA approximation.
 
     Args:
         means: [N, 3] world centres; quats: [N, 4] wxyz; scales: [N, 3] linear.
         camera: OpenCV pinhole camera with full intrinsics (fx, fy, cx, cy).
+        eps2d: variance (pixels^2) added to the 2D covariance diagonal: 3DGS's dilation (0.3), or
+            the 2D Mip filter's variance (Mip-Splatting: 0.1) with ``antialiased``.
+        antialiased: also return ``compensation`` = sqrt(det(Sigma2D) / det(Sigma2D + eps2d I))
+            (floored at sqrt(AA_RATIO_MIN)), the factor the opacities are multiplied by so that the
+            filtered splat keeps its integral (Mip-Splatting's 2D Mip filter).
     Returns:
         Projected screen-space splats (differentiable in means, quats, scales).
     """
@@ -124,13 +137,19 @@ def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera)
     v0 = t10 * c00 + t11 * c01 + t12 * c02
     v1 = t10 * c01 + t11 * c11 + t12 * c12
     v2 = t10 * c02 + t11 * c12 + t12 * c22
-    a = u0 * t00 + u1 * t01 + u2 * t02 + EPS2D
+    a0 = u0 * t00 + u1 * t01 + u2 * t02  # Sigma2D before the filter
     b = u0 * t10 + u1 * t11 + u2 * t12
-    c = v0 * t10 + v1 * t11 + v2 * t12 + EPS2D
+    c0 = v0 * t10 + v1 * t11 + v2 * t12
+    a = a0 + eps2d
+    c = c0 + eps2d
     det = a * c - b * b
     visible = visible & (det > 0)
     det_safe = torch.where(visible, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    compensation = None
+    if antialiased:
+        det0 = a0 * c0 - b * b
+        compensation = torch.sqrt(torch.clamp(det0 / det_safe, min=AA_RATIO_MIN))
 
     u = fx * tx / tz_safe + cx
     v = fy * ty / tz_safe + cy
@@ -145,7 +164,8 @@ def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera)
         touches = (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
         visible = visible & touches & torch.isfinite(means2d.detach()).all(-1)
         radii = torch.where(visible, radii, torch.zeros_like(radii))
-    return Projected(means2d=means2d, conics=conics, depths=tz, radii=radii, visible=visible)
+    return Projected(means2d=means2d, conics=conics, depths=tz, radii=radii, visible=visible,
+                     compensation=compensation)
 
 
 def tile_rects(points: Tensor, radii: Tensor, width: int, height: int) -> Tensor:

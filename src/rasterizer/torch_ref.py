@@ -15,7 +15,7 @@ from torch import Tensor
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
 from src.rasterizer.base import Rasterizer
-from src.rasterizer.projection import TILE, project_splats, tile_rects
+from src.rasterizer.projection import EPS2D, TILE, project_splats, tile_rects
 
 ALPHA_MAX = 0.99  # 3DGS clamps alpha to 0.99
 ALPHA_MIN = 1.0 / 255.0  # 3DGS skips fragments below 1/255
@@ -57,9 +57,19 @@ class TorchRefRasterizer(Rasterizer):
     """Reference rasterizer in pure PyTorch with autograd backward.
 
     Peak memory is O(pairs): every (pixel, splat) pair of a tile's list is materialised.
+
+    Args:
+        antialiased: Mip-Splatting's 2D Mip filter (Yu et al. 2024, Sec. 5.2) instead of 3DGS's
+            dilation: Sigma2D + filter_2d I, opacities times sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
+        filter_2d: variance (pixels^2) of the 2D Mip filter (Mip-Splatting: 0.1); unused unless
+            ``antialiased`` (the dilation is then 0.3, :data:`~src.rasterizer.projection.EPS2D`).
     """
 
     name = "torch_ref"
+
+    def __init__(self, antialiased: bool = False, filter_2d: float = 0.1) -> None:
+        self.antialiased = bool(antialiased)
+        self.filter_2d = float(filter_2d)
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
         """Render splats (see :class:`Rasterizer`). Differentiable via autograd."""
@@ -71,13 +81,19 @@ class TorchRefRasterizer(Rasterizer):
             background = torch.zeros(C, device=device, dtype=dtype)
         background = background.to(device=device, dtype=dtype)
 
-        proj = project_splats(splats.means, splats.quats, splats.scales, camera)
+        if self.antialiased:
+            proj = project_splats(splats.means, splats.quats, splats.scales, camera, eps2d=self.filter_2d,
+                                  antialiased=True)
+            opacities = splats.opacities * proj.compensation  # [N]
+        else:
+            proj = project_splats(splats.means, splats.quats, splats.scales, camera, eps2d=EPS2D)
+            opacities = splats.opacities
         vis_idx = torch.nonzero(proj.visible).squeeze(1)
         # stable depth order of the visible splats (ties keep index order)
         order = vis_idx[torch.argsort(proj.depths.detach()[vis_idx], stable=True)]
         means2d = proj.means2d[order]
         conics = proj.conics[order]
-        opac = splats.opacities[order]
+        opac = opacities[order]
         feats = torch.cat([splats.colors[order], proj.depths[order, None]], dim=1)
         rects = tile_rects(proj.means2d.detach()[order] - 0.5, proj.radii[order], W, H)
 
@@ -117,3 +133,6 @@ class TorchRefRasterizer(Rasterizer):
             means2d=proj.means2d,
             radii=proj.radii,
         )
+
+    def __repr__(self) -> str:
+        return f"TorchRefRasterizer(antialiased={self.antialiased})"

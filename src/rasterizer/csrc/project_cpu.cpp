@@ -7,6 +7,12 @@
 //   * the Jacobian is evaluated at x/z, y/z clamped to frustum_clamp x the image extent on each
 //     side of the principal point;
 //   * Sigma2D = J W Sigma W^T J^T + eps2d I (low-pass filter, pixels^2), culled if det <= 0;
+//   * antialiased entry points (project_forward_aa / project_backward_aa; Mip-Splatting's 2D Mip
+//     filter, eps2d its variance): also ratio = clamp(det0 / det, min=aa_ratio_min), det0 the
+//     determinant before the filter (det where culled replaced by 1, as for the conic); the caller
+//     takes torch.sqrt of it (the opacity compensation; torch's sqrt, which on MKL builds is not
+//     always correctly rounded, so the compensation stays bit-identical to the torch projection's),
+//     and the ratio's gradient joins the conic's chain rule;
 //   * means2d = (fx x / z + cx, fy y / z + cy) (pixel centres at i + 0.5);
 //   * radius = ceil(3 sqrt(lambda_max)), lambda_max = mid + sqrt(max(mid^2 - det, 0.1));
 //   * visible additionally needs a non-empty 3DGS tile rect (centre means2d - 0.5) and finite means2d;
@@ -284,11 +290,14 @@ struct Cam {
   T xlo, xhi, ylo, yhi;  // clamp bounds of x/z and y/z
   T near, eps2d;
   T tile, gx, gy;  // tile size, tile grid size
+  bool aa;         // antialiased: compute the 2D Mip filter's determinant ratio
+  T aa_min;        // floor of det0 / det (under the compensation's square root)
 };
 
 template <typename T>
 Cam<T> make_cam(const at::Tensor& viewmat, double fx, double fy, double cx, double cy, int64_t width,
-                int64_t height, double near, double frustum_clamp, double eps2d, int64_t tile) {
+                int64_t height, double near, double frustum_clamp, double eps2d, int64_t tile,
+                bool antialiased = false, double aa_ratio_min = 0.0) {
   Cam<T> c;
   const T* m = viewmat.data_ptr<T>();
   for (int i = 0; i < 3; ++i) {
@@ -315,6 +324,8 @@ Cam<T> make_cam(const at::Tensor& viewmat, double fx, double fy, double cx, doub
   c.tile = static_cast<T>(tile);
   c.gx = static_cast<T>((width + tile - 1) / tile);
   c.gy = static_cast<T>((height + tile - 1) / tile);
+  c.aa = antialiased;
+  c.aa_min = static_cast<T>(aa_ratio_min);
   return c;
 }
 
@@ -332,8 +343,10 @@ struct Fwd {
   V m[3][3];         // R S
   V T0[3], T1[3];    // J W
   V u[3], v[3];      // T0 Sigma, T1 Sigma
+  V a0, c0;            // Sigma2D diagonal before the filter
   V a, b, c, det, ds;  // Sigma2D (+ eps2d), determinant, det or 1 where culled
   M vis;               // vis_z && det > 0
+  V det0, ratio, rc;  // antialiased only: det before the filter, det0 / ds, ratio clamped
 };
 
 // The forward of projection.py up to the conic's inputs, op by op, for the L splats starting at
@@ -404,12 +417,20 @@ inline void fwd_core(const Cam<typename Tr<V>::S>& k, const typename Tr<V>::S* m
   f.v[0] = (t1[0] * c00 + t1[1] * c01) + t1[2] * c02;
   f.v[1] = (t1[0] * c01 + t1[1] * c11) + t1[2] * c12;
   f.v[2] = (t1[0] * c02 + t1[1] * c12) + t1[2] * c22;
-  f.a = ((f.u[0] * t0[0] + f.u[1] * t0[1]) + f.u[2] * t0[2]) + k.eps2d;
+  f.a0 = (f.u[0] * t0[0] + f.u[1] * t0[1]) + f.u[2] * t0[2];
   f.b = (f.u[0] * t1[0] + f.u[1] * t1[1]) + f.u[2] * t1[2];
-  f.c = ((f.v[0] * t1[0] + f.v[1] * t1[1]) + f.v[2] * t1[2]) + k.eps2d;
+  f.c0 = (f.v[0] * t1[0] + f.v[1] * t1[1]) + f.v[2] * t1[2];
+  f.a = f.a0 + k.eps2d;
+  f.c = f.c0 + k.eps2d;
   f.det = f.a * f.c - f.b * f.b;
   f.vis = f.vis_z & (f.det > V{});
   f.ds = f.vis ? f.det : one;
+  if (k.aa) {
+    f.det0 = f.a0 * f.c0 - f.b * f.b;
+    f.ratio = f.det0 / f.ds;
+    const V lo = bc<V>(k.aa_min);
+    f.rc = (f.ratio < lo) ? lo : f.ratio;  // clamp(min=aa_min); NaN propagates
+  }
 }
 
 // True if every lane of the mask is set.
@@ -423,7 +444,7 @@ inline bool all_lanes(const M& m, int L) {
 // 0 in every lane where all forward intermediates of the chain rule (and the scales) and the
 // reciprocals of its divisors are finite, NaN elsewhere (x * 0 is NaN for x = +-inf or NaN; no -ffast-math here, so it is not folded).
 template <typename V>
-inline V finite_probe(const Fwd<V>& f, const V* s) {
+inline V finite_probe(const Fwd<V>& f, const V* s, bool aa) {
   const V z{};
   V acc = (f.tx * z + f.ty * z) + (f.tz * z + f.zs * z);
   acc += (f.xr * z + f.yr * z) + (f.inv * z + f.j00 * z) + (f.j02 * z + f.j11 * z) + f.j12 * z;
@@ -437,6 +458,7 @@ inline V finite_probe(const Fwd<V>& f, const V* s) {
   // the chain rule's divisors (in VT: an underflow to 0 here only makes the probe conservative)
   const V one = z + 1;
   acc += (one / (f.ds * f.ds)) * z + (one / (f.zs * f.zs)) * z + (one / f.n) * z;
+  if (aa) acc += (f.det0 * z + f.ratio * z) + f.rc * z;
   return acc;
 }
 
@@ -454,13 +476,13 @@ template <typename V>
 inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typename Tr<V>::S* means,
                          const typename Tr<V>::S* quats, const typename Tr<V>::S* scales,
                          typename Tr<V>::S* means2d, typename Tr<V>::S* conics, typename Tr<V>::S* depths,
-                         int32_t* radii, bool* visible, bool* finite) {
+                         int32_t* radii, bool* visible, bool* finite, typename Tr<V>::S* ratio) {
   using T = typename Tr<V>::S;
   constexpr int L = Tr<V>::L;
   Fwd<V> f;
   fwd_core<V>(k, means + 3 * i, quats + 4 * i, scales + 3 * i, f);
   {
-    const auto fin = finite_probe<V>(f, f.s) == V{};
+    const auto fin = finite_probe<V>(f, f.s, k.aa) == V{};
     for (int l = 0; l < L; ++l) finite[i + l] = mlane(fin, l);
   }
   const V conic[3] = {f.c / f.ds, (-f.b) / f.ds, f.a / f.ds};
@@ -470,6 +492,7 @@ inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typen
   const V uv[2] = {u, v};
   store_rows<V, 2>(means2d + 2 * i, uv);
   scatter<V>(depths + i, 1, 0, f.tz);
+  if (k.aa) scatter<V>(ratio + i, 1, 0, f.rc);
   // radius (no_grad block of projection.py)
   const V mid = T(0.5) * (f.a + f.c);
   V disc = mid * mid - f.det;
@@ -496,27 +519,29 @@ inline void forward_pack(const Cam<typename Tr<V>::S>& k, int64_t i, const typen
 
 template <typename T>
 void forward_impl(const Cam<T>& k, const T* means, const T* quats, const T* scales, int64_t N,
-                  T* means2d, T* conics, T* depths, int32_t* radii, bool* visible, bool* finite) {
+                  T* means2d, T* conics, T* depths, int32_t* radii, bool* visible, bool* finite, T* ratio) {
   using V = vec_t<T, 32 / sizeof(T)>;  // 8 floats or 4 doubles
   constexpr int L = Tr<V>::L;
   const int64_t nb = N / L;
   const int nt = std::max(1, at::get_num_threads());
 #pragma omp parallel for schedule(static) num_threads(nt) if (N >= MIN_SPLATS_PARALLEL)
   for (int64_t b = 0; b < nb; ++b)
-    forward_pack<V>(k, b * L, means, quats, scales, means2d, conics, depths, radii, visible, finite);
+    forward_pack<V>(k, b * L, means, quats, scales, means2d, conics, depths, radii, visible, finite, ratio);
   for (int64_t i = nb * L; i < N; ++i)
-    forward_pack<T>(k, i, means, quats, scales, means2d, conics, depths, radii, visible, finite);
+    forward_pack<T>(k, i, means, quats, scales, means2d, conics, depths, radii, visible, finite, ratio);
 }
 
-// Incoming gradients of the backward: rows of means2d [N, 2], conics [N, 3] and depths [N] with
-// row strides (elements) sm2, scn, sdp, so strided views (e.g. columns of the rasterizer's
-// [N, R] gradient) are read in place.
+// Incoming gradients of the backward: rows of means2d [N, 2], conics [N, 3], depths [N] and (the
+// antialiased mode only, else null) the clamped determinant ratio [N] with row strides (elements) sm2, scn, sdp,
+// scp, so strided views (e.g. columns of the rasterizer's [N, R] gradient) are read in place.
 template <typename S>
 struct GradIn {
   const S* m2;
   const S* cn;
   const S* dp;
   int64_t sm2, scn, sdp;
+  const S* cp = nullptr;
+  int64_t scp = 1;
 };
 
 template <typename VT, typename VA>
@@ -546,8 +571,9 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
                         (gather<VT>(gcn, gi.scn, 0) == zt) & (gather<VT>(gcn, gi.scn, 1) == zt) &
                         (gather<VT>(gcn, gi.scn, 2) == zt) &
                         (gather<VT>(gi.dp + gi.sdp * i, gi.sdp, 0) == zt);
-    if (all_lanes(zero_g, L)) {
-      if (all_lanes(finite_probe<VT>(f, f.s) == zt, L)) {
+    const bool zero_cp = !k.aa || all_lanes(gather<VT>(gi.cp + gi.scp * i, gi.scp, 0) == zt, L);
+    if (zero_cp && all_lanes(zero_g, L)) {
+      if (all_lanes(finite_probe<VT>(f, f.s, k.aa) == zt, L)) {
         for (int j = 0; j < 4; ++j) scatter<VT>(g_quats + 4 * i, 4, j, zt);
         for (int j = 0; j < 3; ++j) {
           scatter<VT>(g_scales + 3 * i, 3, j, zt);
@@ -566,7 +592,20 @@ inline void backward_pack(const Cam<typename Tr<VT>::S>& k, int64_t i, const typ
   // conics = (c, -b, a) / ds; ds = det = a c - b^2 where visible, else the constant 1 (torch.where:
   // the det branch gets a zero gradient, which is still multiplied through det's inputs)
   VA ga = gC / ds, gb = -gB / ds, gc = gA / ds;
-  const VA gds = mcvt<MA>(f.vis) ? -(gA * c - gB * b + gC * a) / (ds * ds) : zero;
+  VA gds_in = -(gA * c - gB * b + gC * a) / (ds * ds);
+  if (k.aa) {
+    // rc = clamp(ratio, min), ratio = det0 / ds, det0 = a0 c0 - b^2 (a = a0 + eps2d: the gradients
+    // of a0 and a are the same, likewise c)
+    const VA grc = up(gather<VT>(gi.cp + gi.scp * i, gi.scp, 0));
+    const auto pass = f.ratio >= bc<VT>(k.aa_min);  // clamp backward: passes at and above the bound
+    const VA gratio = mcvt<MA>(pass) ? grc : zero;
+    const VA gdet0 = gratio / ds;
+    gds_in -= gratio * up(f.ratio) / ds;
+    ga += gdet0 * up(f.c0);
+    gc += gdet0 * up(f.a0);
+    gb -= A(2) * gdet0 * b;
+  }
+  const VA gds = mcvt<MA>(f.vis) ? gds_in : zero;
   ga += gds * c;
   gc += gds * a;
   gb -= A(2) * gds * b;
@@ -680,7 +719,7 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
       const T* m2 = gi.m2 + gi.sm2 * i;
       const T* cn = gi.cn + gi.scn * i;
       const bool zero = m2[0] == T(0) && m2[1] == T(0) && cn[0] == T(0) && cn[1] == T(0) &&
-                        cn[2] == T(0) && gi.dp[gi.sdp * i] == T(0);
+                        cn[2] == T(0) && gi.dp[gi.sdp * i] == T(0) && (!k.aa || gi.cp[gi.scp * i] == T(0));
       if (!(zero && finite[i])) {
         live.push_back(i);
       } else {  // exactly zero gradients (outputs are not pre-filled)
@@ -693,7 +732,8 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
     }
     const int64_t nl = static_cast<int64_t>(live.size()), nb = nl / L;
     for (int64_t b = 0; b < nb; ++b) {
-      T lm[3 * L], lq[4 * L], ls[3 * L], lg2[2 * L], lgc[3 * L], lgd[L], om[3 * L], oq[4 * L], os[3 * L];
+      T lm[3 * L], lq[4 * L], ls[3 * L], lg2[2 * L], lgc[3 * L], lgd[L], lgp[L], om[3 * L], oq[4 * L],
+          os[3 * L];
       for (int l = 0; l < L; ++l) {
         const int64_t i = live[b * L + l];
         for (int j = 0; j < 3; ++j) {
@@ -705,8 +745,9 @@ void backward_impl(const Cam<T>& k, const T* means, const T* quats, const T* sca
         lg2[2 * l] = gi.m2[gi.sm2 * i];
         lg2[2 * l + 1] = gi.m2[gi.sm2 * i + 1];
         lgd[l] = gi.dp[gi.sdp * i];
+        lgp[l] = k.aa ? gi.cp[gi.scp * i] : T(0);
       }
-      const GradIn<T> gl{lg2, lgc, lgd, 2, 3, 1};
+      const GradIn<T> gl{lg2, lgc, lgd, 2, 3, 1, k.aa ? lgp : nullptr, 1};
       backward_pack<VT, VA>(k, 0, lm, lq, ls, gl, om, oq, os);
       for (int l = 0; l < L; ++l) {
         const int64_t i = live[b * L + l];
@@ -767,10 +808,10 @@ void check_common(const at::Tensor& means, const at::Tensor& quats, const at::Te
 // Returns: means2d [N,2], conics [N,3] (a, b, c of the inverse 2D covariance), depths [N]
 //          (camera z, also of culled splats), radii [N] int32 (0 if culled), visible [N] bool,
 //          finite [N] bool (every intermediate the backward's chain rule uses is finite).
-std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
-                                        at::Tensor viewmat, double fx, double fy, double cx, double cy,
-                                        int64_t width, int64_t height, double near_plane,
-                                        double frustum_clamp, double eps2d, int64_t tile) {
+std::vector<at::Tensor> forward_entry(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                                      const at::Tensor& viewmat, double fx, double fy, double cx, double cy,
+                                      int64_t width, int64_t height, double near_plane, double frustum_clamp,
+                                      double eps2d, int64_t tile, bool antialiased, double aa_ratio_min) {
   check_common(means, quats, scales, viewmat, width, height, tile);
   const int64_t N = means.size(0);
   auto opts = means.options();
@@ -780,19 +821,43 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
   at::Tensor radii = at::empty({N}, opts.dtype(at::kInt));
   at::Tensor visible = at::empty({N}, opts.dtype(at::kBool));
   at::Tensor finite = at::empty({N}, opts.dtype(at::kBool));
+  at::Tensor ratio = at::empty({antialiased ? N : 0}, opts);
   auto run = [&](auto zero) {
     using T = decltype(zero);
     const Cam<T> k = make_cam<T>(viewmat, fx, fy, cx, cy, width, height, near_plane, frustum_clamp,
-                                 eps2d, tile);
+                                 eps2d, tile, antialiased, aa_ratio_min);
     forward_impl<T>(k, means.data_ptr<T>(), quats.data_ptr<T>(), scales.data_ptr<T>(), N,
                     means2d.data_ptr<T>(), conics.data_ptr<T>(), depths.data_ptr<T>(),
-                    radii.data_ptr<int32_t>(), visible.data_ptr<bool>(), finite.data_ptr<bool>());
+                    radii.data_ptr<int32_t>(), visible.data_ptr<bool>(), finite.data_ptr<bool>(),
+                    antialiased ? ratio.data_ptr<T>() : nullptr);
   };
   if (means.scalar_type() == at::kFloat)
     run(float(0));
   else
     run(double(0));
+  if (antialiased) return {means2d, conics, depths, radii, visible, finite, ratio};
   return {means2d, conics, depths, radii, visible, finite};
+}
+
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                        at::Tensor viewmat, double fx, double fy, double cx, double cy,
+                                        int64_t width, int64_t height, double near_plane,
+                                        double frustum_clamp, double eps2d, int64_t tile) {
+  return forward_entry(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near_plane,
+                       frustum_clamp, eps2d, tile, false, 0.0);
+}
+
+// Antialiased forward (Mip-Splatting's 2D Mip filter; eps2d is the filter's variance): the same
+// outputs, then ratio [N] = clamp(det0 / det, min=aa_ratio_min) (det0: the 2D covariance's
+// determinant before the filter; det replaced by 1 where culled); the opacity compensation is its
+// square root.
+std::vector<at::Tensor> project_forward_aa(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                           at::Tensor viewmat, double fx, double fy, double cx, double cy,
+                                           int64_t width, int64_t height, double near_plane,
+                                           double frustum_clamp, double eps2d, int64_t tile,
+                                           double aa_ratio_min) {
+  return forward_entry(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near_plane,
+                       frustum_clamp, eps2d, tile, true, aa_ratio_min);
 }
 
 // Incoming gradient of the backward: [N] or [N, cols] in the splats' dtype whose elements within a
@@ -809,18 +874,21 @@ void check_grad(const at::Tensor& t, const char* name, at::ScalarType st, int64_
 //       finite [N] bool (splats with zero incoming gradients and finite[i] get zero gradients
 //       without evaluating their chain rule).
 // Returns: v_means [N,3], v_quats [N,4] (w.r.t. the unnormalised input), v_scales [N,3].
-std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales,
-                                         at::Tensor viewmat, double fx, double fy, double cx,
-                                         double cy, int64_t width, int64_t height, double near_plane,
-                                         double frustum_clamp, double eps2d, int64_t tile,
-                                         at::Tensor v_means2d, at::Tensor v_conics,
-                                         at::Tensor v_depths, at::Tensor finite) {
+std::vector<at::Tensor> backward_entry(const at::Tensor& means, const at::Tensor& quats,
+                                       const at::Tensor& scales, const at::Tensor& viewmat, double fx,
+                                       double fy, double cx, double cy, int64_t width, int64_t height,
+                                       double near_plane, double frustum_clamp, double eps2d, int64_t tile,
+                                       const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                                       const at::Tensor& v_depths, const at::Tensor* v_ratio,
+                                       const at::Tensor& finite, double aa_ratio_min) {
   check_common(means, quats, scales, viewmat, width, height, tile);
   const int64_t N = means.size(0);
   const auto st = means.scalar_type();
+  const bool antialiased = v_ratio != nullptr;
   check_grad(v_means2d, "v_means2d", st, N, 2);
   check_grad(v_conics, "v_conics", st, N, 3);
   check_grad(v_depths, "v_depths", st, N, 0);
+  if (antialiased) check_grad(*v_ratio, "v_ratio", st, N, 0);
   check_input(finite, "finite", at::kBool, N, 0);
   auto opts = means.options();
   at::Tensor g_means = at::empty({N, 3}, opts);  // every row written by backward_impl
@@ -829,9 +897,10 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   auto run = [&](auto zero) {
     using T = decltype(zero);
     const Cam<T> k = make_cam<T>(viewmat, fx, fy, cx, cy, width, height, near_plane, frustum_clamp,
-                                 eps2d, tile);
+                                 eps2d, tile, antialiased, aa_ratio_min);
     const GradIn<T> gi{v_means2d.data_ptr<T>(), v_conics.data_ptr<T>(), v_depths.data_ptr<T>(),
-                       v_means2d.stride(0), v_conics.stride(0), v_depths.stride(0)};
+                       v_means2d.stride(0), v_conics.stride(0), v_depths.stride(0),
+                       antialiased ? v_ratio->data_ptr<T>() : nullptr, antialiased ? v_ratio->stride(0) : 1};
     backward_impl<T>(k, means.data_ptr<T>(), quats.data_ptr<T>(), scales.data_ptr<T>(),
                      finite.data_ptr<bool>(), N, gi,
                      g_means.data_ptr<T>(), g_quats.data_ptr<T>(), g_scales.data_ptr<T>());
@@ -843,9 +912,35 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   return {g_means, g_quats, g_scales};
 }
 
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                         at::Tensor viewmat, double fx, double fy, double cx,
+                                         double cy, int64_t width, int64_t height, double near_plane,
+                                         double frustum_clamp, double eps2d, int64_t tile,
+                                         at::Tensor v_means2d, at::Tensor v_conics,
+                                         at::Tensor v_depths, at::Tensor finite) {
+  return backward_entry(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near_plane,
+                        frustum_clamp, eps2d, tile, v_means2d, v_conics, v_depths, nullptr, finite, 0.0);
+}
+
+// Antialiased backward: as project_backward, plus v_ratio [N] (the incoming gradient of
+// project_forward_aa's ratio; rows at any stride), and aa_ratio_min as in the forward.
+std::vector<at::Tensor> project_backward_aa(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                            at::Tensor viewmat, double fx, double fy, double cx,
+                                            double cy, int64_t width, int64_t height, double near_plane,
+                                            double frustum_clamp, double eps2d, int64_t tile,
+                                            double aa_ratio_min, at::Tensor v_means2d, at::Tensor v_conics,
+                                            at::Tensor v_depths, at::Tensor v_ratio,
+                                            at::Tensor finite) {
+  return backward_entry(means, quats, scales, viewmat, fx, fy, cx, cy, width, height, near_plane,
+                        frustum_clamp, eps2d, tile, v_means2d, v_conics, v_depths, &v_ratio, finite,
+                        aa_ratio_min);
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(splatfields_cpu, m) {
   m.def("project_forward", &project_forward);
   m.def("project_backward", &project_backward);
+  m.def("project_forward_aa", &project_forward_aa);
+  m.def("project_backward_aa", &project_backward_aa);
 }
