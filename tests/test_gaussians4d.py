@@ -189,19 +189,20 @@ def test_gradients_reach_every_plane_and_the_decoder():
 
 
 def test_decoder_layout_and_zero_init():
-    d = DeformationDecoder(in_dim=6, width=8, depth=1)
+    d = DeformationDecoder(in_dim=6, width=8, depth=1, zero_init=True)
     assert [type(x).__name__ for x in d.trunk] == ["Linear", "ReLU", "Linear"]
     dx, ds, dq = d(torch.randn(5, 6))
     assert dx.shape == (5, 3) and ds.shape == (5, 3) and dq.shape == (5, 4)
     assert not dx.any() and not ds.any() and not dq.any()
-    dx, _, _ = DeformationDecoder(in_dim=6, width=8, zero_init=False)(torch.randn(5, 6))
+    dx, _, _ = DeformationDecoder(in_dim=6, width=8)(torch.randn(5, 6))  # default: Xavier heads
     assert dx.abs().sum() > 0
 
 
 def test_zero_init_deformation_leaves_the_canonical_splats_unchanged():
     g = torch.Generator().manual_seed(4)
     init = torch.rand(30, 3, generator=g) * 1.6 - 0.8
-    m = HexPlaneGaussianModel(init, n_frames=6, resolution=4, feature_dim=3, width=8, sh_degree=1, warm_up=0)
+    m = HexPlaneGaussianModel(init, n_frames=6, resolution=4, feature_dim=3, width=8, sh_degree=1, warm_up=0,
+                               zero_init=True)
     ref = GaussianSplatModel(init, sh_degree=1)
     with torch.no_grad():  # canonical parameters away from their uniform start
         for k in m.params:

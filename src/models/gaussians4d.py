@@ -35,7 +35,8 @@ class HexPlaneGaussianModel(GaussianSplatModel):
         feature_dim: channels per plane (4DGaussians: 32).
         bounds: the planes cover [-bounds, bounds]^3 of the (normalised) scene.
         width, depth: decoder hidden width and extra trunk layers (4DGaussians D-NeRF: 64, 0).
-        zero_init: zero the decoder's output layers (the deformation starts as the identity).
+        zero_init: zero the decoder's output layers (the deformation starts as the identity); default False:
+            Xavier-uniform as the reference.
         warm_up: iterations without deformation (4DGaussians coarse stage: 3000).
         lambda_plane_tv: weight of the spatial planes' TV (4DGaussians ``plane_tv_weight``: 1e-4).
         lambda_time_smooth: weight of the space-time planes' smoothness in time (``time_smoothness_weight``: 1e-2).
@@ -51,7 +52,7 @@ class HexPlaneGaussianModel(GaussianSplatModel):
 
     def __init__(self, init: Tensor, n_frames: int = 1, resolution: int = 64, multires: Sequence[int] = (1, 2),
                  time_resolution: int | None = None, feature_dim: int = 32, bounds: float = 1.6, width: int = 64,
-                 depth: int = 0, zero_init: bool = True, warm_up: int = 3000, lambda_plane_tv: float = 1e-4,
+                 depth: int = 0, zero_init: bool = False, warm_up: int = 3000, lambda_plane_tv: float = 1e-4,
                  lambda_time_smooth: float = 1e-2, lambda_time_l1: float = 1e-4, plane_tv_quirk: bool = False,
                  sh_degree: int = 3, sh_degree_interval: int = 1000, init_opacity: float = 0.1,
                  init_color: float = 0.5, init_scale_mult: float = 1.0, method: str = "gaussians4d",
