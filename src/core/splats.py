@@ -83,3 +83,19 @@ class RenderOutput:
     depth: Tensor
     means2d: Tensor
     radii: Tensor
+
+
+@dataclass
+class SurfelRenderOutput(RenderOutput):
+    """What a 2D Gaussian surfel rasterizer returns (2DGS, Huang et al. 2024): :class:`RenderOutput` plus
+    the maps its geometry losses read.
+
+    Attributes:
+        normals: [H, W, 3] accumulated world-frame surfel normals sum_i n_i * alpha_i * T_i (not
+            normalised; each n_i is oriented towards the camera).
+        distortion: [H, W] depth distortion sum_{j<i} w_i w_j (m_i - m_j)^2 of the NDC-mapped
+            intersection depths m (2DGS Eq. 13, as its reference code evaluates it).
+    """
+
+    normals: Tensor
+    distortion: Tensor

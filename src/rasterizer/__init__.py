@@ -16,6 +16,12 @@ rasterizer (Kerbl et al. 2023):
 Every backend also takes ``antialiased=True``: Mip-Splatting's 2D Mip filter (Yu et al. 2024,
 Sec. 5.2) in place of the 0.3 dilation, Sigma2D + ``filter_2d`` I (0.1) with the opacity multiplied by
 sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
+
+``surfels=True`` (every backend) renders the splats as 2D Gaussian surfels instead (2DGS, Huang et al.
+2024): explicit ray-splat intersection with the object-space low-pass filter, the same alpha and
+compositing rules, and a :class:`~src.core.splats.SurfelRenderOutput` with normal and depth-distortion
+maps (:mod:`src.rasterizer.surfel_ref`: the rules and the torch reference; ``surfel_cpu``: the compiled
+kernel; ``gsplat_surfel``: gsplat's 2DGS on CUDA).
 """
 
 from src.rasterizer.base import Rasterizer

@@ -1,12 +1,13 @@
 """JIT build and loading of the C++/OpenMP CPU extensions (rasterizer and fused projection).
 
-Two shared objects are compiled with ``torch.utils.cpp_extension.load`` on first use (about 30-60 s
-on 2 cores in total) into a persistent cache directory keyed by a hash of the sources, compiler
-flags, torch and Python versions:
+Two shared objects (three with the 2DGS surfel kernel, :func:`load_surfel_extension`) are compiled
+with ``torch.utils.cpp_extension.load`` on first use (about 30-60 s on 2 cores in total) into a
+persistent cache directory keyed by a hash of the sources, compiler flags, torch and Python versions:
 
     $SPLATFIELDS_EXT_DIR  or  ${XDG_CACHE_HOME:-~/.cache}/splatfields/ext
         /rasterize_cpu_<hash>/   csrc/rasterize_cpu.cpp (+ simd.h): sort, binning, compositing
         /project_cpu_<hash>/     csrc/project_cpu.cpp: EWA projection forward/backward
+        /surfel_cpu_<hash>/      csrc/surfel_cpu.cpp: 2D Gaussian surfel compositing forward/backward
 
 so later processes only load the shared objects. torch's loader holds a file lock in each
 directory while compiling, so concurrent processes (e.g. pytest-xdist workers) build once.
@@ -49,11 +50,14 @@ LDFLAGS = ["-fopenmp"]
 # fused projection: strict IEEE (bit-identical to the torch projection), its own shared object
 PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
 PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
+# 2D Gaussian surfel compositing (2DGS): its own shared object, built on first use by the surfel backend only
+SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
 
 OPS_NAMESPACE = "splatfields_cpu"
 
 _lock = threading.Lock()
 _module: Any = None
+_surfel_loaded = False
 
 
 def cpu_has_avx2_fma() -> bool:
@@ -161,3 +165,24 @@ def load_extension(verbose: bool = False) -> Any:
         _load_unit("project_cpu", PROJ_SOURCES, [], projection_compile_flags(), verbose)
         _module = getattr(torch.ops, OPS_NAMESPACE)
         return _module
+
+
+def load_surfel_extension(verbose: bool = False) -> Any:
+    """Compile (if needed) and load the surfel extension (``csrc/surfel_cpu.cpp``, 2DGS compositing).
+
+    Built like the fused projection (strict IEEE flags, :func:`projection_compile_flags`) into
+    ``surfel_cpu_<hash>/`` of the same cache; independent of :func:`load_extension`.
+
+    Returns:
+        The ``torch.ops.splatfields_cpu`` namespace (``surfel_forward``, ``surfel_backward``).
+
+    Raises:
+        RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
+    """
+    global _surfel_loaded
+    if not _surfel_loaded:
+        with _lock:
+            if not _surfel_loaded:
+                _load_unit("surfel_cpu", SURFEL_SOURCES, [], projection_compile_flags(), verbose)
+                _surfel_loaded = True
+    return getattr(torch.ops, OPS_NAMESPACE)

@@ -11,14 +11,15 @@ from src.rasterizer.base import Rasterizer
 log = logging.getLogger(__name__)
 
 
-def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1) -> Rasterizer:
+def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: bool = False) -> Rasterizer:
     """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort.
 
     Args:
         antialiased: Mip-Splatting's 2D Mip filter instead of 3DGS's dilation (every backend).
         filter_2d: the 2D Mip filter's variance in pixels^2 (Mip-Splatting: 0.1).
+        surfels: 2D Gaussian surfels by ray-splat intersection (2DGS), in every backend.
     """
-    aa = {"antialiased": antialiased, "filter_2d": filter_2d}
+    aa = {"antialiased": antialiased, "filter_2d": filter_2d, "surfels": surfels}
     if torch.cuda.is_available():
         try:
             from src.rasterizer.gsplat_backend import GsplatRasterizer

@@ -30,3 +30,11 @@ class Rasterizer(ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}()"
+
+
+def check_surfels(surfels: bool, antialiased: bool) -> bool:
+    """``surfels`` as a bool; ValueError if combined with ``antialiased`` (2DGS has its own low-pass filter)."""
+    if surfels and antialiased:
+        raise ValueError("rasterizer.surfels (2DGS) and rasterizer.antialiased (Mip-Splatting) cannot be combined: "
+                         "2D Gaussian surfels carry their own object-space low-pass filter")
+    return bool(surfels)

@@ -27,8 +27,8 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.rasterizer._build import load_extension
-from src.rasterizer.base import Rasterizer
+from src.rasterizer._build import load_extension, load_surfel_extension
+from src.rasterizer.base import Rasterizer, check_surfels
 from src.rasterizer.projection import EPS2D, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
 
@@ -143,6 +143,10 @@ class CpuRasterizer(Rasterizer):
             sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
         filter_2d: variance (pixels^2) of the 2D Mip filter (Mip-Splatting: 0.1); unused unless
             ``antialiased``.
+        surfels: render the splats as 2D Gaussian surfels by ray-splat intersection (2DGS, Huang et al.
+            2024) with the compiled surfel kernel (:func:`~src.rasterizer.surfel_cpu.render_surfels_cpu`,
+            float32 or float64; returns a :class:`~src.core.splats.SurfelRenderOutput`); the other
+            options then do not apply, and ``antialiased`` is refused.
 
     Attributes:
         last_stats: after a render (and its backward), a dict with ``contrib_pairs`` (pairs with
@@ -160,7 +164,8 @@ class CpuRasterizer(Rasterizer):
     name = "cpu"
 
     def __init__(self, cull: bool = True, count_pairs: bool = False, projection: str = "fused",
-                 first_window: int = 0, antialiased: bool = False, filter_2d: float = 0.1) -> None:
+                 first_window: int = 0, antialiased: bool = False, filter_2d: float = 0.1,
+                 surfels: bool = False) -> None:
         if projection not in PROJECTIONS:
             raise ValueError(f"projection must be one of {PROJECTIONS}, got {projection!r}")
         self.first_window = int(first_window)
@@ -169,11 +174,15 @@ class CpuRasterizer(Rasterizer):
         self.projection = projection
         self.antialiased = bool(antialiased)
         self.filter_2d = float(filter_2d)
+        self.surfels = check_surfels(surfels, antialiased)
         self._stats: Tensor | None = None
 
     def ensure_built(self, verbose: bool = False) -> None:
         """Compile/load the extension now (e.g. before timing); see :func:`ensure_built`."""
-        ensure_built(verbose=verbose)
+        if self.surfels:
+            load_surfel_extension(verbose=verbose)
+        else:
+            ensure_built(verbose=verbose)
 
     @property
     def last_stats(self) -> dict[str, float]:
@@ -188,6 +197,10 @@ class CpuRasterizer(Rasterizer):
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
         """Render splats (see :class:`Rasterizer`). Differentiable via the compiled backward."""
+        if self.surfels:
+            from src.rasterizer.surfel_cpu import render_surfels_cpu
+
+            return render_surfels_cpu(splats, camera, background)
         _check_inputs(splats, camera, background)
         dtype = torch.float32
         W, H = camera.width, camera.height
@@ -224,4 +237,6 @@ class CpuRasterizer(Rasterizer):
 
     def __repr__(self) -> str:
         aa = ", antialiased=True" if self.antialiased else ""
+        if self.surfels:
+            return "CpuRasterizer(surfels=True)"
         return f"CpuRasterizer(cull={self.cull}, projection={self.projection!r}{aa})"

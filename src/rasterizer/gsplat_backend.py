@@ -23,7 +23,7 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.rasterizer.base import Rasterizer
+from src.rasterizer.base import Rasterizer, check_surfels
 
 
 class GsplatRasterizer(Rasterizer):
@@ -35,11 +35,14 @@ class GsplatRasterizer(Rasterizer):
             3DGS's dilation (``classic``).
         filter_2d: variance (pixels^2) of the 2D Mip filter, gsplat's ``eps2d`` when ``antialiased``
             (Mip-Splatting: 0.1).
+        surfels: 2D Gaussian surfels (2DGS) with ``gsplat.rasterization_2dgs``
+            (:func:`~src.rasterizer.gsplat_surfel.render_surfels_gsplat`).
     """
 
     name = "gsplat"
 
-    def __init__(self, near_plane: float = 0.2, antialiased: bool = False, filter_2d: float = 0.1) -> None:
+    def __init__(self, near_plane: float = 0.2, antialiased: bool = False, filter_2d: float = 0.1,
+                 surfels: bool = False) -> None:
         if not torch.cuda.is_available():
             raise RuntimeError("rasterizer=gsplat needs a CUDA GPU; use rasterizer=cpu or rasterizer=auto")
         try:
@@ -50,8 +53,13 @@ class GsplatRasterizer(Rasterizer):
         self.antialiased = bool(antialiased)
         self.eps2d = float(filter_2d) if self.antialiased else 0.3
         self.rasterize_mode = "antialiased" if self.antialiased else "classic"
+        self.surfels = check_surfels(surfels, antialiased)
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
+        if self.surfels:
+            from src.rasterizer.gsplat_surfel import render_surfels_gsplat
+
+            return render_surfels_gsplat(splats, camera, background, near_plane=self.near_plane)
         from gsplat import rasterization
 
         splats.validate()

@@ -14,8 +14,9 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.rasterizer.base import Rasterizer
+from src.rasterizer.base import Rasterizer, check_surfels
 from src.rasterizer.projection import EPS2D, TILE, project_splats, tile_rects
+from src.rasterizer.surfel_ref import render_surfels_ref
 
 ALPHA_MAX = 0.99  # 3DGS clamps alpha to 0.99
 ALPHA_MIN = 1.0 / 255.0  # 3DGS skips fragments below 1/255
@@ -63,16 +64,22 @@ class TorchRefRasterizer(Rasterizer):
             dilation: Sigma2D + filter_2d I, opacities times sqrt(det(Sigma2D) / det(Sigma2D + filter_2d I)).
         filter_2d: variance (pixels^2) of the 2D Mip filter (Mip-Splatting: 0.1); unused unless
             ``antialiased`` (the dilation is then 0.3, :data:`~src.rasterizer.projection.EPS2D`).
+        surfels: render the splats as 2D Gaussian surfels by ray-splat intersection (2DGS, Huang et al.
+            2024; :func:`~src.rasterizer.surfel_ref.render_surfels_ref`, which returns a
+            :class:`~src.core.splats.SurfelRenderOutput`); not combinable with ``antialiased``.
     """
 
     name = "torch_ref"
 
-    def __init__(self, antialiased: bool = False, filter_2d: float = 0.1) -> None:
+    def __init__(self, antialiased: bool = False, filter_2d: float = 0.1, surfels: bool = False) -> None:
         self.antialiased = bool(antialiased)
         self.filter_2d = float(filter_2d)
+        self.surfels = check_surfels(surfels, antialiased)
 
     def render(self, splats: Splats, camera: Camera, background: Tensor | None = None) -> RenderOutput:
         """Render splats (see :class:`Rasterizer`). Differentiable via autograd."""
+        if self.surfels:
+            return render_surfels_ref(splats, camera, background)
         splats.validate()
         device, dtype = splats.means.device, splats.means.dtype
         W, H = camera.width, camera.height
@@ -135,4 +142,4 @@ class TorchRefRasterizer(Rasterizer):
         )
 
     def __repr__(self) -> str:
-        return f"TorchRefRasterizer(antialiased={self.antialiased})"
+        return f"TorchRefRasterizer(antialiased={self.antialiased}, surfels={self.surfels})"
