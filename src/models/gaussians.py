@@ -130,6 +130,7 @@ class GaussianSplatModel(SplatModel):
             s = torch.exp(p["scales"][idx]).repeat(n_split, 1)
             q = F.normalize(p["quats"][idx], dim=-1).repeat(n_split, 1)
             samples = torch.randn(s.shape, generator=generator).to(s) * s
+            samples = F.pad(samples, (0, 3 - samples.shape[1]))  # [M, 3]; 2D surfels (two scales) sample in-plane
             rot = _quat_to_rotmat(q)
             children = {k: v[idx].repeat(n_split, *([1] * (v.ndim - 1))) for k, v in p.items()}
             children["means"] = torch.einsum("nij,nj->ni", rot, samples) + p["means"][idx].repeat(n_split, 1)
