@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from src.core.splats import RenderOutput
+from src.data.base import View
 from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 
@@ -23,6 +24,13 @@ class Strategy:
 
     def bind(self, scene, rasterizer) -> None:
         """Called once before training with the scene and the rasterizer."""
+
+    def step_views(self, model: SplatModel, views: list[View], iteration: int,
+                   generator: torch.Generator) -> list[View]:
+        """The views (cameras and target images) iteration ``iteration`` trains on, given the sampled
+        training ``views``: those views by default; LightGaussian's distillation replaces them by a
+        teacher's renders of pseudo views."""
+        return views
 
     def after_backward(self, model: SplatModel, renders: list[RenderOutput], iteration: int) -> None:
         """Accumulate statistics from the gradients of this iteration (before the optimiser step)."""

@@ -255,7 +255,7 @@ class Trainer:
         psnr_val = math.nan
         groups = self.views_by_frame(scene)
         for it in bar:
-            views = self.sample_views(groups, rng)
+            views = strategy.step_views(model, self.sample_views(groups, rng), it, generator)
             step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
                                    scene.background)
             terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
