@@ -21,7 +21,8 @@ from omegaconf import DictConfig, OmegaConf
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
 from src.init.stage1 import ensure_first_stage
-from src.io.ply import scene_frames, write_baked_ply
+from src.io.compressed import COMPRESSED_FILE
+from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
 from src.trainer.guard import DivergenceError, DivergenceGuard
 from src.trainer.trainer import CheckpointError
 from src.utils.instantiate import ConfigError, build, check_targets
@@ -159,6 +160,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
             record["capacity"]["search_s"] = time.perf_counter() - t_search
             record["keys"].update(record["capacity"]["chosen"])
         model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
+        # compress=...: write the compressed splat file and evaluate what it decodes to (LightGaussian)
+        compression = build(cfg.compress).apply(model, rasterizer, scene, run_dir) if cfg.get("compress") else {}
         evaluator = build(cfg.eval)
         ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
         if cfg.trainer.get("tensorboard", False):
@@ -173,7 +176,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
             "psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
             "n_params": model.n_params(), "train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
             "peak_mem_mb": peak_memory_mb(device), **ev,
-            **{f"iter_{k}": v for k, v in train_stats["timing"].items()},
+            **{f"iter_{k}": v for k, v in train_stats["timing"].items()}, **compression,
         }
         if stage1 is not None:  # the 3DGS first stage is part of this method's training cost
             record["metrics"]["stage1_train_s"] = stage1["train_s"]
@@ -189,6 +192,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
             record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
         record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
         write_baked_ply(model, run_dir, frames=scene_frames(scene))
+        if (run_dir / BAKED_PLY).is_file():  # the splat set's size on disk in the 3DGS PLY layout (MiB)
+            record["metrics"]["size_mb_ply"] = (run_dir / BAKED_PLY).stat().st_size / 2**20
         record["status"] = "ok"
         log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
                  record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
@@ -271,6 +276,8 @@ def print_summary(record: dict, run_dir: Path) -> None:
         f"  metrics   {run_dir / 'metrics.json'}",
         f"  renders   {run_dir / 'renders' / 'test'}",
         f"  splats    {run_dir / 'splats.ply'}",
+        *([f"  compressed {run_dir / COMPRESSED_FILE} ({m['size_mb']:.3f} MiB; "
+           f"the PLY {m.get('size_mb_ply', float('nan')):.3f} MiB)"] if "size_mb" in m else []),
         f"  logs      tensorboard --logdir {run_dir / 'tb'}",
         f"  view      python -m src.view {run_dir}",
     ]

@@ -8,5 +8,6 @@ canonical query points of SplatFields. ``max_splats`` is a hard cap honoured by 
 from src.strategy.base import NoDensification, Strategy
 from src.strategy.budget import BudgetStrategy
 from src.strategy.default import ADCStrategy
+from src.strategy.lightgaussian import LightGaussianStrategy
 
-__all__ = ["ADCStrategy", "BudgetStrategy", "NoDensification", "Strategy"]
+__all__ = ["ADCStrategy", "BudgetStrategy", "LightGaussianStrategy", "NoDensification", "Strategy"]
