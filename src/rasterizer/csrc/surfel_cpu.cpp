@@ -41,6 +41,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <numeric>
 #include <vector>
 
@@ -120,9 +121,20 @@ struct Pair {
   bool clamped;
 };
 
+// Per-surfel bound on rho above which alpha < 1/255 for certain: o exp(-rho / 2) < 1/255 iff
+// rho > 2 ln(255 o); the margin (1e-4, far above exp's rounding) makes the early skip exact, so the
+// decisions stay those of the reference (exp is evaluated wherever alpha may reach 1/255).
+template <typename S>
+std::vector<S> rho_cutoffs(const S* op, int64_t n) {
+  std::vector<S> cut(n);
+  for (int64_t i = 0; i < n; ++i)
+    cut[i] = op[i] > S(0) ? S(2) * std::log(S(255) * op[i]) + S(1e-4) : -std::numeric_limits<S>::infinity();
+  return cut;
+}
+
 // Returns false if the pair is skipped (outside, parallel, behind the near plane, alpha < 1/255).
 template <typename S>
-inline bool eval_pair(const S* T, const S* c, S o, const int32_t* r, int i, int j, S x, S y, Pair<S>& q) {
+inline bool eval_pair(const S* T, const S* c, S o, S cut, const int32_t* r, int i, int j, S x, S y, Pair<S>& q) {
   if (i < r[0] || i > r[2] || j < r[1] || j > r[3]) return false;
   q.kx = x * T[6] - T[0];
   q.ky = x * T[7] - T[1];
@@ -142,6 +154,7 @@ inline bool eval_pair(const S* T, const S* c, S o, const int32_t* r, int i, int 
   const S rho2d = (q.dx * q.dx + q.dy * q.dy) * S(FILTER_INV_SQ);
   q.surface = rho3d <= rho2d;
   const S rho = q.surface ? rho3d : rho2d;
+  if (rho > cut) return false;  // alpha < 1/255 (see rho_cutoffs)
   q.depth = q.surface ? q.u * T[6] + q.v * T[7] + T[8] : T[8];
   if (q.depth < S(NEAR)) return false;
   q.g = std::exp(S(-0.5) * rho);
@@ -151,6 +164,25 @@ inline bool eval_pair(const S* T, const S* c, S o, const int32_t* r, int i, int 
   return q.alpha >= S(ALPHA_MIN);
 }
 
+// The entries of a tile's list whose rectangle spans row j: list positions and their column ranges, in
+// list order (an acceleration only: eval_pair repeats the full rectangle test).
+struct RowCandidates {
+  std::vector<int64_t> pos;
+  std::vector<int32_t> i0, i1;
+  void build(const int32_t* list, const int32_t* rects, int64_t beg, int64_t end, int j) {
+    pos.clear();
+    i0.clear();
+    i1.clear();
+    for (int64_t k = beg; k < end; ++k) {
+      const int32_t* r = rects + 4 * static_cast<int64_t>(list[k]);
+      if (j < r[1] || j > r[3]) continue;
+      pos.push_back(k);
+      i0.push_back(r[0]);
+      i1.push_back(r[2]);
+    }
+  }
+};
+
 template <typename S>
 inline S ndc(S z) {
   return S(FAR / (FAR - NEAR)) * (S(1) - S(NEAR) / z);
@@ -158,25 +190,31 @@ inline S ndc(S z) {
 
 template <typename S>
 void forward_impl(const S* T, const S* c, const S* nrm, const S* op, const S* col, const int32_t* rects,
-                  const S* bg, int C, int W, int H, const Bins& b, S* out_c, S* out_a, S* out_d, S* out_n,
+                  const S* bg, int64_t n, int C, int W, int H, const Bins& b, S* out_c, S* out_a, S* out_d, S* out_n,
                   S* out_dist, S* t_final, S* m1_out, S* m2_out, int32_t* last) {
   const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
   const int64_t nt = static_cast<int64_t>(gx) * gy;
+  const std::vector<S> cut = rho_cutoffs(op, n);
 #pragma omp parallel for schedule(dynamic, 1)
   for (int64_t t = 0; t < nt; ++t) {
     const int tx = static_cast<int>(t % gx), ty = static_cast<int>(t / gx);
     const int64_t beg = b.offsets[t], end = b.offsets[t + 1];
     std::vector<S> acc(C);
+    RowCandidates row;
     for (int j = ty * TILE; j < std::min((ty + 1) * TILE, H); ++j) {
+      row.build(b.list.data(), rects, beg, end, j);
+      const int64_t nrow = static_cast<int64_t>(row.pos.size());
       for (int i = tx * TILE; i < std::min((tx + 1) * TILE, W); ++i) {
         const S x = S(i) + S(0.5), y = S(j) + S(0.5);
         std::fill(acc.begin(), acc.end(), S(0));
         S Tr = 1, D = 0, N0 = 0, N1 = 0, N2 = 0, M1 = 0, M2 = 0, dist = 0;
         int32_t lastk = 0;
-        for (int64_t k = beg; k < end; ++k) {
+        for (int64_t e = 0; e < nrow; ++e) {
+          if (i < row.i0[e] || i > row.i1[e]) continue;
+          const int64_t k = row.pos[e];
           const int64_t id = b.list[k];
           Pair<S> q;
-          if (!eval_pair(T + 9 * id, c + 2 * id, op[id], rects + 4 * id, i, j, x, y, q)) continue;
+          if (!eval_pair(T + 9 * id, c + 2 * id, op[id], cut[id], rects + 4 * id, i, j, x, y, q)) continue;
           const S test = Tr * (S(1) - q.alpha);
           if (test < S(T_MIN)) break;
           const S w = q.alpha * Tr;
@@ -219,16 +257,19 @@ void backward_impl(const S* gC, const S* gA, const S* gD, const S* gN, const S* 
   const int64_t nt = static_cast<int64_t>(gx) * gy;
   const int64_t stride = NG + C;
   const int nthreads = std::max(1, std::min<int>(omp_get_max_threads(), static_cast<int>(nt)));
+  const std::vector<S> cut = rho_cutoffs(op, n);
   std::vector<std::vector<double>> bufs(nthreads, std::vector<double>(static_cast<size_t>(n * stride), 0.0));
 #pragma omp parallel num_threads(nthreads)
   {
     std::vector<double>& g = bufs[omp_get_thread_num()];
     std::vector<S> gcol(C);
+    RowCandidates row;
 #pragma omp for schedule(static)
     for (int64_t t = 0; t < nt; ++t) {
       const int tx = static_cast<int>(t % gx), ty = static_cast<int>(t / gx);
       const int64_t beg = offsets[t];
       for (int j = ty * TILE; j < std::min((ty + 1) * TILE, H); ++j) {
+        row.build(list, rects, beg, offsets[t + 1], j);
         for (int i = tx * TILE; i < std::min((tx + 1) * TILE, W); ++i) {
           const int64_t pix = static_cast<int64_t>(j) * W + i;
           const int32_t lastk = last[pix];
@@ -244,11 +285,15 @@ void backward_impl(const S* gC, const S* gA, const S* gD, const S* gN, const S* 
           const S gd = gD[pix], gdist = gDist[pix];
           const S gn0 = gN[3 * pix], gn1 = gN[3 * pix + 1], gn2 = gN[3 * pix + 2];
           S Tr = Tf, suffix = 0;
-          for (int64_t k = beg + lastk - 1; k >= beg; --k) {
+          // the row's candidates before the last blended surfel (positions ascend)
+          const int64_t e_end = std::lower_bound(row.pos.begin(), row.pos.end(), beg + lastk) - row.pos.begin();
+          for (int64_t e = e_end - 1; e >= 0; --e) {
+            const int64_t k = row.pos[e];
+            if (i < row.i0[e] || i > row.i1[e]) continue;
             const int64_t id = list[k];
             const S* Ti = T + 9 * id;
             Pair<S> q;
-            if (!eval_pair(Ti, c + 2 * id, op[id], rects + 4 * id, i, j, x, y, q)) continue;
+            if (!eval_pair(Ti, c + 2 * id, op[id], cut[id], rects + 4 * id, i, j, x, y, q)) continue;
             const S oma = S(1) - q.alpha;
             Tr = Tr / oma;  // T before this surfel
             const S w = q.alpha * Tr;
@@ -369,7 +414,7 @@ std::vector<at::Tensor> surfel_forward(at::Tensor transforms, at::Tensor means2d
     b = bin_surfels(depths.data_ptr<float>(), visible.data_ptr<bool>(), rects.data_ptr<int32_t>(), n, gx, gy);
     forward_impl<float>(transforms.data_ptr<float>(), means2d.data_ptr<float>(), normals.data_ptr<float>(),
                         opacities.data_ptr<float>(), colors.data_ptr<float>(), rects.data_ptr<int32_t>(),
-                        background.data_ptr<float>(), static_cast<int>(C), W, H, b, out_c.data_ptr<float>(),
+                        background.data_ptr<float>(), n, static_cast<int>(C), W, H, b, out_c.data_ptr<float>(),
                         out_a.data_ptr<float>(), out_d.data_ptr<float>(), out_n.data_ptr<float>(),
                         out_dist.data_ptr<float>(), t_final.data_ptr<float>(), m1.data_ptr<float>(),
                         m2.data_ptr<float>(), last.data_ptr<int32_t>());
@@ -377,7 +422,7 @@ std::vector<at::Tensor> surfel_forward(at::Tensor transforms, at::Tensor means2d
     b = bin_surfels(depths.data_ptr<double>(), visible.data_ptr<bool>(), rects.data_ptr<int32_t>(), n, gx, gy);
     forward_impl<double>(transforms.data_ptr<double>(), means2d.data_ptr<double>(), normals.data_ptr<double>(),
                          opacities.data_ptr<double>(), colors.data_ptr<double>(), rects.data_ptr<int32_t>(),
-                         background.data_ptr<double>(), static_cast<int>(C), W, H, b, out_c.data_ptr<double>(),
+                         background.data_ptr<double>(), n, static_cast<int>(C), W, H, b, out_c.data_ptr<double>(),
                          out_a.data_ptr<double>(), out_d.data_ptr<double>(), out_n.data_ptr<double>(),
                          out_dist.data_ptr<double>(), t_final.data_ptr<double>(), m1.data_ptr<double>(),
                          m2.data_ptr<double>(), last.data_ptr<int32_t>());
