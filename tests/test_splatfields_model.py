@@ -111,3 +111,34 @@ def test_dynamic_experiments_run_on_shipped_data(tmp_path, exp):
     assert rec["status"] == "ok"
     assert rec["per_frame"] and len({f["time"] for f in rec["per_frame"]}) > 1
     assert rec["metrics"]["fps_baked"] > 0 and rec["metrics"]["fps_fields"] > 0
+
+
+def test_3d_smoothing_filter_on_predicted_splats():
+    """model.filter_3d applies Mip-Splatting's 3D filter to the field's splats (training and baked),
+    and leaves them untouched when 0 or before cameras are bound."""
+    from types import SimpleNamespace
+
+    from src.models.mip_splatting import filter_variance, max_sampling_rate, smoothed_scales
+
+    cams = [random_camera(32, 32, seed=s) for s in (1, 2)]
+    scene = SimpleNamespace(train=[SimpleNamespace(camera=c) for c in cams])
+    plain, _ = _model(["+experiment=splatfields3d"])
+    filt, _ = _model(["+experiment=splatfields3d", "model.filter_3d=0.2"])
+    filt.network.load_state_dict(plain.network.state_dict())
+    with torch.no_grad():
+        unbound = filt.splats(cams[0])
+        ref = plain.splats(cams[0])
+        assert torch.equal(unbound.scales, ref.scales) and torch.equal(unbound.opacities, ref.opacities)
+        plain.bind(scene)
+        assert torch.equal(plain.splats(cams[0]).scales, ref.scales)  # filter_3d = 0: no filter
+        filt.bind(scene)
+        got, baked = filt.splats(cams[0]), filt.bake()
+        var = filter_variance(max_sampling_rate(ref.means, cams), 0.2)
+        scales, factor = smoothed_scales(torch.log(ref.scales), var)
+    assert bool((var > 0).all())
+    assert torch.allclose(got.scales, scales, rtol=1e-5) and torch.allclose(baked.scales, scales, rtol=1e-5)
+    assert torch.allclose(got.opacities, ref.opacities * factor, rtol=1e-5)
+    assert bool((got.opacities < ref.opacities).all())  # a filtered splat spreads its mass
+    out = filt.splats(cams[1])
+    (out.opacities.sum() + out.scales.sum() + out.colors.sum() + out.means.sum() + out.quats.sum()).backward()
+    assert all(p.grad is not None for p in filt.network.parameters() if p.requires_grad)

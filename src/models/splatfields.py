@@ -18,6 +18,7 @@ from src.core.splats import Splats
 from src.fields.network import SplatFieldNetwork
 from src.models.base import SplatModel
 from src.models.knn import knn_base_scale
+from src.models.mip_splatting import filter_variance, max_sampling_rate
 
 
 class SplatFieldsModel(SplatModel):
@@ -41,12 +42,18 @@ class SplatFieldsModel(SplatModel):
             training time is t + N(0, 1) * time_noise * (1 / n_frames) * max(0, 1 - it / time_noise_until).
             0 disables it.
         time_noise_until: iteration at which the jitter reaches zero.
+        filter_3d: s of Mip-Splatting's 3D smoothing filter (Yu et al. 2024, Sec. 5.1) applied to the
+            predicted splats: variance s / nu^2, nu the highest sampling rate of the splat's centre over
+            the training cameras (``bind``); 0 (default, the paper) = no filter.
+        frustum_margin: a training camera sees a centre within this fraction of the image size
+            outside its borders (the 3D filter's rate; Mip-Splatting's code: 0.15).
     """
 
     def __init__(self, init: Tensor, network: SplatFieldNetwork | Callable[..., SplatFieldNetwork],
                  flow: object | None = None, n_frames: int = 1, method: str = "splatfields3d",
                  clone_mode: str = "jitter", clone_jitter: float = 0.5, max_splats: int | None = None,
-                 time_noise: float = 0.0, time_noise_until: int = 20_000, **_: object) -> None:
+                 time_noise: float = 0.0, time_noise_until: int = 20_000, filter_3d: float = 0.0,
+                 frustum_margin: float = 0.15, **_: object) -> None:
         super().__init__()
         n_frames = max(1, int(n_frames))
         if not isinstance(network, torch.nn.Module):
@@ -72,6 +79,11 @@ class SplatFieldsModel(SplatModel):
         self.register_buffer("canonical", init.float().clone())  # [N, 3]
         self.register_buffer("base_scale", knn_base_scale(init.float())[:, None].repeat(1, 3))  # [N, 3]
         self._last: dict[str, Tensor] = {}
+        if not filter_3d >= 0:
+            raise ValueError(f"model.filter_3d must be >= 0, got {filter_3d}")
+        self.filter_3d = float(filter_3d)
+        self.frustum_margin = float(frustum_margin)
+        self.cameras: list[Camera] = []
 
     @property
     def n_splats(self) -> int:
@@ -95,8 +107,29 @@ class SplatFieldsModel(SplatModel):
         return self.network(self.canonical, self.base_scale, frame_id=camera.frame_id, time=self._time(camera),
                             camera_center=camera.center.to(self.canonical), state=state)
 
+    def bind(self, scene) -> None:
+        """Keep the scene's training cameras (the sampling rates of the 3D filter)."""
+        self.cameras = [v.camera for v in scene.train]
+
+    def _smoothed(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
+        """``out`` with the 3D smoothing filter applied (unchanged when ``filter_3d`` is 0 or no cameras).
+
+        R diag(s^2) R^T + var I = R diag(s^2 + var) R^T: scales sqrt(s^2 + var) [N, 3] and opacity
+        x prod_i s_i / sqrt(s_i^2 + var) (the filtered splat keeps its integral), var [N] = s_f / nu^2
+        from the current centres (detached; the rate is a property of the cameras, not a gradient path).
+        """
+        if self.filter_3d <= 0 or not self.cameras:
+            return out
+        nu = max_sampling_rate(out["means"].detach(), self.cameras, self.frustum_margin)  # [N]
+        var = filter_variance(nu, self.filter_3d).to(out["scales"])[:, None]  # [N, 1]
+        s2 = out["scales"] * out["scales"]  # [N, 3]
+        scales = torch.sqrt(s2 + var)
+        factor = torch.prod(out["scales"] / scales, dim=-1)  # [N] in (0, 1]
+        return {**out, "scales": scales, "opacities": out["opacities"] * factor}
+
     def _to_splats(self, out: dict[str, Tensor]) -> Splats:
         self._last = {"opacities": out["opacities"].detach(), "scales": out["scales"].detach()}
+        out = self._smoothed(out)
         return Splats(means=out["means"], scales=out["scales"], quats=out["quats"], opacities=out["opacities"],
                       colors=out["colors"])
 
@@ -125,7 +158,8 @@ class SplatFieldsModel(SplatModel):
         """Evaluate the fields once and return a plain splat set (exact for view-independent colour)."""
         if getattr(self.network, "view_dependent", False):
             raise NotImplementedError("view-dependent colour cannot be baked into RGB splats exactly")
-        out = self.network(self.canonical, self.base_scale, frame_id=frame_id, time=time, state=self.network.prepare())
+        out = self._smoothed(self.network(self.canonical, self.base_scale, frame_id=frame_id, time=time,
+                                          state=self.network.prepare()))
         return Splats(means=out["means"].clone(), scales=out["scales"].clone(),
                       quats=torch.nn.functional.normalize(out["quats"], dim=-1), opacities=out["opacities"].clone(),
                       colors=out["colors"].clone())
