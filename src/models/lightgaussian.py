@@ -23,7 +23,7 @@ from src.core.cameras import Camera
 from src.core.splats import Splats
 from src.models.gaussians import GaussianSplatModel
 from src.models.sh import eval_sh
-from src.optim.adam import SplatOptimizer
+from src.optim.adam import SplatOptimizer, swap_param
 
 #: Teacher buffers: ``teacher_<name>`` holds the raw parameter ``name`` (``sh``: sh0 and shN together).
 TEACHER_KEYS = ("means", "scales", "quats", "opacities", "sh")
@@ -135,17 +135,4 @@ class LightGaussianModel(GaussianSplatModel):
 
 def _replace_param_columns(optimizer: SplatOptimizer | None, old: nn.Parameter, k: int) -> nn.Parameter:
     """A parameter holding ``old[:, :k]``, swapped into ``optimizer`` with its Adam moments sliced alike."""
-    new = nn.Parameter(old.data[:, :k].detach().clone())
-    if optimizer is None:
-        return new
-    opt = optimizer.optimizer
-    for g in opt.param_groups:
-        for i, p in enumerate(g["params"]):
-            if p is old:
-                state = opt.state.pop(old, None)
-                if state:
-                    for name in ("exp_avg", "exp_avg_sq"):
-                        state[name] = state[name][:, :k].clone()
-                    opt.state[new] = state
-                g["params"][i] = new
-    return new
+    return swap_param(optimizer, old, nn.Parameter(old.data[:, :k].detach().clone()), lambda v: v[:, :k].clone())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -105,14 +106,9 @@ class SplatOptimizer:
         raise KeyError(name)
 
 
-def replace_param_rows(optimizer: SplatOptimizer | None, old: nn.Parameter, new_data: Tensor,
-                       keep: Tensor | None, n_appended: int) -> nn.Parameter:
-    """Swap ``old`` for a parameter holding ``new_data`` and keep Adam's moments consistent.
-
-    ``new_data`` must equal ``old[keep]`` (all rows if ``keep`` is None) followed by ``n_appended``
-    new rows; their Adam moments are zero.
-    """
-    new = nn.Parameter(new_data.detach().clone().requires_grad_(True))
+def swap_param(optimizer: SplatOptimizer | None, old: nn.Parameter, new: nn.Parameter,
+               moment: Callable[[Tensor], Tensor]) -> nn.Parameter:
+    """Put ``new`` in ``old``'s place in ``optimizer``; Adam's moments become ``moment(old_moment)``."""
     if optimizer is None:
         return new
     opt = optimizer.optimizer
@@ -122,12 +118,24 @@ def replace_param_rows(optimizer: SplatOptimizer | None, old: nn.Parameter, new_
                 state = opt.state.pop(old, None)
                 if state:
                     for k in ("exp_avg", "exp_avg_sq"):
-                        v = state[k] if keep is None else state[k][keep]
-                        if n_appended:
-                            v = torch.cat([v, torch.zeros((n_appended, *v.shape[1:]), dtype=v.dtype,
-                                                          device=v.device)])
-                        state[k] = v
+                        state[k] = moment(state[k])
                     opt.state[new] = state
                 g["params"][i] = new
                 return new
     return new
+
+
+def replace_param_rows(optimizer: SplatOptimizer | None, old: nn.Parameter, new_data: Tensor,
+                       keep: Tensor | None, n_appended: int) -> nn.Parameter:
+    """Swap ``old`` for a parameter holding ``new_data`` and keep Adam's moments consistent.
+
+    ``new_data`` must equal ``old[keep]`` (all rows if ``keep`` is None) followed by ``n_appended``
+    new rows; their Adam moments are zero.
+    """
+    def moment(v: Tensor) -> Tensor:
+        v = v if keep is None else v[keep]
+        if n_appended:
+            v = torch.cat([v, torch.zeros((n_appended, *v.shape[1:]), dtype=v.dtype, device=v.device)])
+        return v
+
+    return swap_param(optimizer, old, nn.Parameter(new_data.detach().clone().requires_grad_(True)), moment)
