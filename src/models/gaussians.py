@@ -13,7 +13,7 @@ from src.core.splats import Splats
 from src.models.base import SplatModel
 from src.models.knn import knn_base_scale
 from src.models.sh import eval_sh, rgb_to_sh0
-from src.optim.adam import SplatOptimizer, replace_param_rows
+from src.optim.adam import SplatOptimizer, replace_param_rows, swap_param
 
 
 def _logit(p: float) -> float:
@@ -185,13 +185,12 @@ class GaussianSplatModel(SplatModel):
     def reset_opacity(self, optimizer: SplatOptimizer | None, value: float) -> None:
         """3DGS opacity reset: opacity = min(opacity, value), Adam moments of opacities zeroed."""
         o = self.params["opacities"]
-        new = torch.minimum(o.data, torch.full_like(o.data, _logit(value)))
-        self.params["opacities"] = replace_param_rows(optimizer, o, new, None, 0)
-        if optimizer is not None:
-            st = optimizer.optimizer.state.get(self.params["opacities"])
-            if st:
-                st["exp_avg"].zero_()
-                st["exp_avg_sq"].zero_()
+        self._set_opacities(optimizer, torch.minimum(o.data, torch.full_like(o.data, _logit(value))))
+
+    def _set_opacities(self, optimizer: SplatOptimizer | None, logits: Tensor) -> None:
+        """Replace the opacity logits [N] by ``logits``, their Adam moments zeroed (an opacity reset)."""
+        self.params["opacities"] = swap_param(optimizer, self.params["opacities"],
+                                              nn.Parameter(logits.detach().clone()), torch.zeros_like)
 
 
 def _quat_to_rotmat(q: Tensor) -> Tensor:

@@ -26,7 +26,7 @@ from torch import Tensor
 from src.core.cameras import Camera
 from src.core.splats import Splats
 from src.models.gaussians import GaussianSplatModel
-from src.optim.adam import SplatOptimizer, replace_param_rows
+from src.optim.adam import SplatOptimizer
 from src.rasterizer.projection import NEAR_PLANE
 
 
@@ -186,12 +186,7 @@ class MipGaussianSplatModel(GaussianSplatModel):
             over = torch.sigmoid(o.data) * factor > value  # [N] filtered opacity above the value
             target = (value / factor.clamp_min(1e-30)).clamp(max=1 - 1e-6)  # < 1 where over
             new = torch.where(over, torch.log(target) - torch.log1p(-target), o.data)
-        self.params["opacities"] = replace_param_rows(optimizer, o, new, None, 0)
-        if optimizer is not None:
-            st = optimizer.optimizer.state.get(self.params["opacities"])
-            if st:
-                st["exp_avg"].zero_()
-                st["exp_avg_sq"].zero_()
+        self._set_opacities(optimizer, new)
 
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
         """Load a checkpoint whose splat count may differ from the current one (resizes first)."""
