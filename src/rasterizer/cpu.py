@@ -29,7 +29,7 @@ from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
 from src.rasterizer._build import load_extension, load_surfel_extension
 from src.rasterizer.base import Rasterizer, check_surfels
-from src.rasterizer.projection import EPS2D, project_splats
+from src.rasterizer.projection import project_for_render, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
 
 PROJECTIONS = ("fused", "torch")
@@ -210,13 +210,7 @@ class CpuRasterizer(Rasterizer):
         background = background.to(dtype=dtype)
 
         project = project_splats_fused if self.projection == "fused" else project_splats
-        if self.antialiased:
-            proj = project(splats.means, splats.quats, splats.scales, camera, eps2d=self.filter_2d,
-                           antialiased=True)
-            opacities = splats.opacities * proj.compensation  # [N]
-        else:
-            proj = project(splats.means, splats.quats, splats.scales, camera, eps2d=EPS2D)
-            opacities = splats.opacities
+        proj, opacities = project_for_render(project, splats, camera, self.antialiased, self.filter_2d)
         color, alpha, depth, stats = _RasterizeFunction.apply(
             proj.means2d.contiguous(),
             proj.conics.contiguous(),

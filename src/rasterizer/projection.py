@@ -168,6 +168,17 @@ def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera,
                      compensation=compensation)
 
 
+def project_for_render(project, splats, camera: Camera, antialiased: bool, filter_2d: float
+                       ) -> tuple[Projected, Tensor]:
+    """Project ``splats`` with ``project`` (``project_splats`` or its compiled twin) and return the
+    opacities [N] to blend: with ``antialiased`` the 2D Mip filter (variance ``filter_2d``) and its
+    opacity compensation, else 3DGS's 0.3 px^2 dilation and the opacities as they are."""
+    if antialiased:
+        proj = project(splats.means, splats.quats, splats.scales, camera, eps2d=filter_2d, antialiased=True)
+        return proj, splats.opacities * proj.compensation
+    return project(splats.means, splats.quats, splats.scales, camera, eps2d=EPS2D), splats.opacities
+
+
 def tile_rects(points: Tensor, radii: Tensor, width: int, height: int) -> Tensor:
     """3DGS ``getRect``: tile index ranges [x0, x1) x [y0, y1) touched by each splat.
 

@@ -15,7 +15,7 @@ from torch import Tensor
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
 from src.rasterizer.base import Rasterizer, check_surfels
-from src.rasterizer.projection import EPS2D, TILE, project_splats, tile_rects
+from src.rasterizer.projection import TILE, project_for_render, project_splats, tile_rects
 from src.rasterizer.surfel_ref import render_surfels_ref
 
 ALPHA_MAX = 0.99  # 3DGS clamps alpha to 0.99
@@ -88,13 +88,7 @@ class TorchRefRasterizer(Rasterizer):
             background = torch.zeros(C, device=device, dtype=dtype)
         background = background.to(device=device, dtype=dtype)
 
-        if self.antialiased:
-            proj = project_splats(splats.means, splats.quats, splats.scales, camera, eps2d=self.filter_2d,
-                                  antialiased=True)
-            opacities = splats.opacities * proj.compensation  # [N]
-        else:
-            proj = project_splats(splats.means, splats.quats, splats.scales, camera, eps2d=EPS2D)
-            opacities = splats.opacities
+        proj, opacities = project_for_render(project_splats, splats, camera, self.antialiased, self.filter_2d)
         vis_idx = torch.nonzero(proj.visible).squeeze(1)
         # stable depth order of the visible splats (ties keep index order)
         order = vis_idx[torch.argsort(proj.depths.detach()[vis_idx], stable=True)]
