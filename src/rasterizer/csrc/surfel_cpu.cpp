@@ -381,6 +381,19 @@ at::Tensor vec_tensor_i32(const std::vector<int32_t>& v) {
   return t;
 }
 
+// The per-surfel inputs shared by forward and backward: [N, 9], [N, 2], [N, 3], [N], [N, C], [N, 4] int32, [C].
+void check_surfels(const at::Tensor& transforms, const at::Tensor& means2d, const at::Tensor& normals,
+                   const at::Tensor& opacities, const at::Tensor& colors, const at::Tensor& rects,
+                   const at::Tensor& background, at::ScalarType st, int64_t n, int64_t C) {
+  check(transforms, "transforms", st, n, 9);
+  check(means2d, "means2d", st, n, 2);
+  check(normals, "normals", st, n, 3);
+  check(opacities, "opacities", st, n, 0);
+  check(colors, "colors", st, n, C);
+  check(rects, "rects", at::kInt, n, 4);
+  check(background, "background", st, C, 0);
+}
+
 // Forward. Returns [color [H, W, C], alpha [H, W], depth [H, W], normals [H, W, 3], distortion [H, W],
 // t_final [H, W], m1 [H, W], m2 [H, W], last [H, W] int32, tile offsets [tiles + 1] int64, lists int32].
 std::vector<at::Tensor> surfel_forward(at::Tensor transforms, at::Tensor means2d, at::Tensor normals,
@@ -393,15 +406,9 @@ std::vector<at::Tensor> surfel_forward(at::Tensor transforms, at::Tensor means2d
   const int64_t n = transforms.size(0);
   TORCH_CHECK(colors.dim() == 2, "surfel_cpu: colors must be [N, C]");
   const int64_t C = colors.size(1);
-  check(transforms, "transforms", st, n, 9);
-  check(means2d, "means2d", st, n, 2);
-  check(normals, "normals", st, n, 3);
-  check(opacities, "opacities", st, n, 0);
-  check(colors, "colors", st, n, C);
-  check(rects, "rects", at::kInt, n, 4);
+  check_surfels(transforms, means2d, normals, opacities, colors, rects, background, st, n, C);
   check(depths, "depths", st, n, 0);
   check(visible, "visible", at::kBool, n, 0);
-  check(background, "background", st, C, 0);
   const int W = static_cast<int>(width), H = static_cast<int>(height);
   const int gx = (W + TILE - 1) / TILE, gy = (H + TILE - 1) / TILE;
   auto opt = transforms.options();
@@ -451,13 +458,7 @@ std::vector<at::Tensor> surfel_backward(at::Tensor grad_color, at::Tensor grad_a
   check(grad_depth, "grad_depth", st, P, 0);
   check(grad_normals, "grad_normals", st, P, 3);
   check(grad_dist, "grad_dist", st, P, 0);
-  check(transforms, "transforms", st, n, 9);
-  check(means2d, "means2d", st, n, 2);
-  check(normals, "normals", st, n, 3);
-  check(opacities, "opacities", st, n, 0);
-  check(colors, "colors", st, n, C);
-  check(rects, "rects", at::kInt, n, 4);
-  check(background, "background", st, C, 0);
+  check_surfels(transforms, means2d, normals, opacities, colors, rects, background, st, n, C);
   check(t_final, "t_final", st, P, 0);
   check(m1, "m1", st, P, 0);
   check(m2, "m2", st, P, 0);
