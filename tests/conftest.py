@@ -45,3 +45,18 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+def same_bits(x: torch.Tensor, y: torch.Tensor) -> bool:
+    """Bitwise-equal values (NaN == NaN), same shape and dtype."""
+    if x.shape != y.shape or x.dtype != y.dtype:
+        return False
+    eq = x == y
+    if x.is_floating_point():
+        eq = eq | (x.isnan() & y.isnan())
+    return bool(eq.all())
+
+
+def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Relative error ||a - b|| / ||b|| in float64."""
+    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))

@@ -29,7 +29,7 @@ from src.rasterizer.cpu import CpuRasterizer
 from src.rasterizer.projection import AA_RATIO_MIN, EPS2D, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
 from src.rasterizer.torch_ref import TorchRefRasterizer
-from tests.conftest import random_camera, random_scene
+from tests.conftest import random_camera, random_scene, rel_err, same_bits
 from tests.test_projection_cpu import hard_scene
 
 PARAMS = ("means", "quats", "scales")
@@ -39,20 +39,6 @@ OUTS = ("means2d", "conics", "depths", "radii", "visible", "compensation")
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def _same(x: torch.Tensor, y: torch.Tensor) -> bool:
-    """Bitwise-equal values (NaN == NaN), same shape and dtype."""
-    if x.shape != y.shape or x.dtype != y.dtype:
-        return False
-    eq = x == y
-    if x.is_floating_point():
-        eq = eq | (x.isnan() & y.isnan())
-    return bool(eq.all())
-
-
-def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -230,7 +216,7 @@ def test_compensation_equals_the_determinant_ratio_of_explicit_matrices():
     a = project_splats(s.means, s.quats, s.scales, cam, eps2d=EPS2D, antialiased=True)
     assert d.compensation is None
     for k in OUTS[:-1]:
-        assert _same(getattr(a, k), getattr(d, k)), k
+        assert same_bits(getattr(a, k), getattr(d, k)), k
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -241,7 +227,7 @@ def test_fused_antialiased_forward_bit_identical(dtype: torch.dtype, seed: int):
     got = project_splats_fused(s.means, s.quats, s.scales, cam, eps2d=0.1, antialiased=True)
     for k in OUTS:
         x, y = getattr(got, k), getattr(ref, k)
-        assert _same(x, y), f"{k}: {int((x != y).sum())} of {x.numel()} differ"
+        assert same_bits(x, y), f"{k}: {int((x != y).sum())} of {x.numel()} differ"
     comp = ref.compensation[ref.visible]
     assert float(comp.min()) == pytest.approx(math.sqrt(AA_RATIO_MIN), rel=1e-5)  # the floor is reached
     assert 0.1 < float(comp.median()) < 1.0
@@ -288,7 +274,7 @@ def test_fused_antialiased_grads_float64_match_torch_autograd(outs):
     assert int((out.visible & (_cancellation(out) < 100)).sum()) > 500
     for k in PARAMS:
         ref, got = g_ref[k], g_got[k]
-        assert _same(torch.isfinite(ref), torch.isfinite(got)), k
+        assert same_bits(torch.isfinite(ref), torch.isfinite(got)), k
         fin = torch.isfinite(ref)
         err = (got[fin] - ref[fin]).abs()
         tol = 1e-10 * ref[fin].abs() + 1e-12 * ref[fin].abs().max()
@@ -303,8 +289,8 @@ def test_fused_antialiased_grads_float32_match_torch_autograd():
     _, g64 = _grads(project_splats, s.to(dtype=torch.float64), cam.to(dtype=torch.float64))
     _, gf = _grads(project_splats_fused, s, cam)
     for k in PARAMS:
-        assert _rel(gf[k], g32[k]) < 1e-3, k
-        assert _rel(gf[k], g64[k]) <= 1.5 * _rel(g32[k], g64[k]) + 1e-7, k
+        assert rel_err(gf[k], g32[k]) < 1e-3, k
+        assert rel_err(gf[k], g64[k]) <= 1.5 * rel_err(g32[k], g64[k]) + 1e-7, k
 
 
 def _gradcheck_scene(n: int = 12) -> tuple[Splats, Camera]:
@@ -379,7 +365,7 @@ def test_cpu_antialiased_render_matches_torch_ref(seed: int):
             a, b = getattr(out, name), getattr(ref_out, name)
             assert torch.allclose(a, b, atol=1e-5, rtol=1e-5), f"{name}: max diff {(a - b).abs().max():.2e}"
         for k in ATTRS:
-            assert _rel(g[k], ref_g[k]) < 1e-4, k
+            assert rel_err(g[k], ref_g[k]) < 1e-4, k
     # the compiled projection renders bit-identically to the torch projection inside the cpu rasterizer
     for name in ("color", "alpha", "depth"):
         assert torch.equal(getattr(outs["fused"][0], name), getattr(outs["torch"][0], name)), name

@@ -24,7 +24,7 @@ from src.core.splats import Splats
 from src.rasterizer.cpu import CpuRasterizer
 from src.rasterizer.projection import FRUSTUM_CLAMP, NEAR_PLANE, Projected, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused
-from tests.conftest import random_camera, random_scene
+from tests.conftest import random_camera, random_scene, rel_err, same_bits
 from tests.test_rasterizer_cpu import _render_with_grads
 
 BG = torch.tensor([0.3, 0.5, 0.7])  # background of the render-level parity checks
@@ -42,20 +42,10 @@ def _one_thread():
     torch.set_num_threads(threads)
 
 
-def _same(x: torch.Tensor, y: torch.Tensor) -> bool:
-    """Bitwise-equal values (NaN == NaN), same shape and dtype."""
-    if x.shape != y.shape or x.dtype != y.dtype:
-        return False
-    eq = x == y
-    if x.is_floating_point():
-        eq = eq | (x.isnan() & y.isnan())
-    return bool(eq.all())
-
-
 def _assert_same_projection(a: Projected, b: Projected) -> None:
     for k in OUTS:
         x, y = getattr(a, k), getattr(b, k)
-        assert _same(x, y), f"{k}: {int((x != y).sum())} of {x.numel()} entries differ"
+        assert same_bits(x, y), f"{k}: {int((x != y).sum())} of {x.numel()} entries differ"
 
 
 def hard_scene(n: int, seed: int, dtype: torch.dtype = torch.float32) -> tuple[Splats, Camera]:
@@ -198,10 +188,6 @@ def test_non_contiguous_inputs_and_float64_camera():
 # backward
 
 
-def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.double() - b.double()).norm() / b.double().norm().clamp_min(1e-300))
-
-
 @pytest.mark.parametrize("seed", [0, 1])
 def test_grads_float64_match_torch_autograd(seed: int):
     """Same graph, both in float64: gradients agree to ~1e-12 per element (finite entries)."""
@@ -212,7 +198,7 @@ def test_grads_float64_match_torch_autograd(seed: int):
     _assert_same_projection(out_f, out_r)
     for k in PARAMS:
         ref, got = g_ref[k], g_got[k]
-        assert _same(torch.isfinite(ref), torch.isfinite(got)), k
+        assert same_bits(torch.isfinite(ref), torch.isfinite(got)), k
         fin = torch.isfinite(ref)
         err = (got[fin] - ref[fin]).abs()
         tol = 1e-10 * ref[fin].abs() + 1e-12 * ref[fin].abs().max()
@@ -229,9 +215,9 @@ def test_grads_float32_match_torch_autograd(seed: int):
     _, g64 = _grads(project_splats, s.to(dtype=torch.float64), cam.to(dtype=torch.float64), seed)
     _, gf = _grads(project_splats_fused, s, cam, seed)
     for k in PARAMS:
-        err_torch32 = _rel(g32[k], g64[k])
-        err_fused = _rel(gf[k], g64[k])
-        assert _rel(gf[k], g32[k]) < 1e-5, k
+        err_torch32 = rel_err(g32[k], g64[k])
+        err_fused = rel_err(gf[k], g64[k])
+        assert rel_err(gf[k], g32[k]) < 1e-5, k
         assert err_fused <= 1.5 * err_torch32 + 1e-7, f"{k}: fused {err_fused:.2e} vs torch f32 {err_torch32:.2e}"
 
 
@@ -243,7 +229,7 @@ def test_grads_at_clamp_bounds_and_near_plane(dtype: torch.dtype):
         _, g_got = _grads(project_splats_fused, s, cam)
         tol = 1e-10 if dtype == torch.float64 else 1e-5
         for k in PARAMS:
-            assert _rel(g_got[k], g_ref[k]) < tol, k
+            assert rel_err(g_got[k], g_ref[k]) < tol, k
 
 
 def test_grads_finite_differences_float64():
@@ -280,7 +266,7 @@ def test_grad_of_unused_outputs_and_no_grad():
         p = project(m, s.quats, s.scales, cam)  # quats/scales do not require grad
         p.means2d.sum().backward()  # conics, depths unused
         grads.append(m.grad)
-    assert _rel(grads[1], grads[0]) < 1e-6
+    assert rel_err(grads[1], grads[0]) < 1e-6
     assert not p.radii.requires_grad and not p.visible.requires_grad
     with torch.no_grad():
         q = project_splats_fused(s.means, s.quats, s.scales, cam)
@@ -295,7 +281,7 @@ def test_deterministic_across_threads():
     b = _grads(project_splats_fused, s, cam)
     _assert_same_projection(a[0], b[0])
     for k in PARAMS:
-        assert _same(a[1][k], b[1][k]), k
+        assert same_bits(a[1][k], b[1][k]), k
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -319,7 +305,7 @@ def test_backward_reads_strided_gradient_rows_in_place(dtype: torch.dtype):
     got = ext.project_backward(*args, *views, finite)
     want = ext.project_backward(*args, *(v.contiguous() for v in views), finite)
     for x, y in zip(got, want, strict=True):
-        assert _same(x, y)
+        assert same_bits(x, y)
     # through autograd: stride-0 (expanded) and transposed gradients
     m = s.means.clone().requires_grad_(True)
     p = project_splats_fused(m, s.quats, s.scales, cam)
@@ -329,7 +315,7 @@ def test_backward_reads_strided_gradient_rows_in_place(dtype: torch.dtype):
     m2 = s.means.clone().requires_grad_(True)
     p2 = project_splats_fused(m2, s.quats, s.scales, cam)
     torch.autograd.backward([p2.means2d, p2.depths], [gm2.contiguous(), gdep.contiguous()])
-    assert _same(m.grad, m2.grad)
+    assert same_bits(m.grad, m2.grad)
 
 
 def _grads_given(project, s: Splats, cam: Camera, out_grads: list[torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -365,10 +351,10 @@ def test_zero_output_gradients_skip_is_exact(dtype: torch.dtype):
     zero_rows = ~keep
     for k in PARAMS:
         ref, got = g_ref[k][zero_rows], g_got[k][zero_rows]
-        assert _same(torch.isfinite(got), torch.isfinite(ref)), k
+        assert same_bits(torch.isfinite(got), torch.isfinite(ref)), k
         assert bool((got[torch.isfinite(got)] == 0).all()), k
         assert not bool(torch.isfinite(g_got[k][-7:][zero_rows[-7:]]).all()), k  # as torch: not finite
-        assert _same(g_got[k][keep], g_sub[k]), k
+        assert same_bits(g_got[k][keep], g_sub[k]), k
 
 
 def test_camera_with_grad_falls_back_to_torch():
@@ -413,7 +399,7 @@ def test_rasterizer_fused_vs_torch_projection(seed: int):
     assert torch.equal(g_f["means2d"], g_t["means2d"])
     assert torch.equal(g_f["opacities"], g_t["opacities"]) and torch.equal(g_f["colors"], g_t["colors"])
     for k in PARAMS:
-        assert _rel(g_f[k], g_t[k]) < 1e-5, k
+        assert rel_err(g_f[k], g_t[k]) < 1e-5, k
 
 
 def test_cpu_config_uses_fused_projection():
