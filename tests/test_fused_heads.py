@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from src.fields import CNNTriplaneBackbone, OffsetFlow, SplatFieldNetwork
-from src.fields.fused import cpu_has_native_bf16
+from src.utils.cpu import cpu_has_native_bf16
 
 OUT_KEYS = ("means", "scales", "quats", "opacities", "colors", "canonical_deformed")
 

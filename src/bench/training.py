@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from src.bench.flops import measure_peaks
-    from src.fields.fused import cpu_has_native_bf16
+    from src.utils.cpu import cpu_has_native_bf16
 
     peaks = {"float32": measure_peaks(torch.float32)}
     peaks["bfloat16"] = measure_peaks(torch.bfloat16) if cpu_has_native_bf16() else peaks["float32"]

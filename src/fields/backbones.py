@@ -21,8 +21,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from src.fields.fused import cpu_has_native_bf16
 from src.fields.triplane import TriplaneGenerator, stacked_planes
+from src.utils.cpu import cpu_has_native_bf16
 
 
 class FieldBackbone(nn.Module, ABC):

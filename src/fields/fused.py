@@ -20,26 +20,14 @@ checks that both agree in float64 (values and gradients).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
-from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from src.fields.linear_relu import linear_relu
 from src.fields.mlp import FieldMLP
-
-
-@functools.cache
-def cpu_has_native_bf16() -> bool:
-    """True when this CPU multiplies bfloat16 natively (AVX512-BF16 or AMX-BF16 in /proc/cpuinfo)."""
-    try:
-        flags = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
-    words = set(flags.split())
-    return bool(words & {"avx512_bf16", "amx_bf16"})
 
 
 def head_weights(mlp: FieldMLP, frame_id: int | None, time: float | None) -> list[Tensor]:
@@ -118,6 +106,13 @@ def head_tail(mlp: FieldMLP, weights: list[Tensor], blocks: list[Tensor], extra:
     k, last = 1, mlp.n_layers - 1
     for i in range(1, mlp.n_layers):
         w = weights[i]
+        if i < last and mlp.activation == "relu":  # hidden layer: product, bias, ReLU fused (linear_relu.py)
+            if i in mlp.skips:  # W_skip [h_in, h] + b = (W_x h_in + b) + W_h h, the first term in blocks[k]
+                h = linear_relu(h, w[:, mlp.in_dim: mlp.in_dim + mlp.width], None, blocks[k])
+                k += 1
+            else:
+                h = linear_relu(h, w, mlp.layers[i].bias)
+            continue
         if i == last and last_dtype is not None:
             with torch.autocast(h.device.type, enabled=False):
                 h = h.to(last_dtype)

@@ -30,8 +30,9 @@ from torch import Tensor, nn
 from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
-from src.fields.fused import HeadInput, add_pe, cpu_has_native_bf16, first_layers, head_tail, head_weights
+from src.fields.fused import HeadInput, add_pe, first_layers, head_tail, head_weights
 from src.fields.mlp import FieldMLP, get_activation
+from src.utils.cpu import cpu_has_native_bf16
 
 SCALE_MODES = ("exp", "additive_quirk")
 
