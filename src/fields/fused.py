@@ -11,7 +11,8 @@ PE(t) is one row per call (all splats share the time), so its part is folded int
 with fewer PE levels than the group's maximum reads a prefix of PE_Lmax (the layout is level-major:
 [x, sin f0 x, cos f0 x, sin f1 x, ...]); its weight is zero-padded. The hidden and output layers then
 run per head, the skip layers as ``addmm(U_skip, h, W_hᵀ)`` without concatenating [N, in + width]
-tensors. The parameters are the heads' own (state dicts unchanged); the fused weights are
+tensors, and every hidden ReLU layer through ``linear_relu`` (bias and ReLU in the product's
+epilogue). The parameters are the heads' own (state dicts unchanged); the fused weights are
 concatenated from them on every call (a few kB), so gradients reach every head as before.
 
 The slow reference is ``FieldMLP.forward`` on explicit concatenations; ``tests/test_fused_heads.py``
