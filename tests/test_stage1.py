@@ -48,6 +48,11 @@ def test_auto_first_stage_equals_the_cli_first_stage_and_is_reused(tmp_path, sce
     # a first stage trained for other settings is refused, naming the directory and the key
     with pytest.raises(ValueError, match=r"views4_it20_seed0.*n_views: 4 != 6"):
         check_first_stage(auto_dir, {"scene": "scene", "n_views": 6, "seed": 0, "iterations": 20, "n_points": 300})
+    # ... and so is one of another first-stage model
+    stored = json.loads((auto_dir / "metrics.json").read_text())["stage1_keys"]
+    assert stored["model"].endswith("GaussianSplatModel")
+    with pytest.raises(ValueError, match=r"model: .*GaussianSplatModel != .*MipGaussianSplatModel"):
+        check_first_stage(auto_dir, {**stored, "model": "src.models.mip_splatting.MipGaussianSplatModel"})
 
 
 def test_first_stage_off_names_the_command(tmp_path, scene_root):

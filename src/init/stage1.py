@@ -33,7 +33,7 @@ from src.utils.seed import seed_everything
 log = logging.getLogger(__name__)
 
 #: Keys of a first-stage record that must match the run that reads it.
-MATCH_KEYS = ("scene", "n_views", "seed", "iterations", "n_points")
+MATCH_KEYS = ("scene", "n_views", "seed", "iterations", "n_points", "model")
 
 
 def first_stage_config(cfg: DictConfig) -> DictConfig:
@@ -57,9 +57,14 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
 
 
 def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
-    """What a usable first stage for ``cfg`` on ``scene`` must have been trained with."""
+    """What a usable first stage for ``cfg`` on ``scene`` must have been trained with.
+
+    ``model`` is the first stage's model class (``stage1.model._target_``): a first stage of another
+    model (e.g. ``model@stage1.model=mip_splatting``) in the same directory is refused, not re-used.
+    """
     return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
-            "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points)}
+            "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points),
+            "model": str(cfg.stage1.model.get("_target_"))}
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
