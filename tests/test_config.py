@@ -98,3 +98,23 @@ def test_two_stage_experiment_is_the_main_job(extra):
     for key in ("strategy", "init", "model", "stage1", "loss", "optim", "trainer"):
         assert OmegaConf.to_container(exp[key]) == OmegaConf.to_container(main[key]), key
     assert exp.strategy._target_.endswith("NoDensification")
+
+
+def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
+    """protocol=two_stage_mip: a Mip-Splatting first stage in its own cache, the 2D Mip filter in both
+    stages and the 3D filter on the predicted splats; everything else as protocol=two_stage."""
+    plain = _compose(["protocol=two_stage", "dataset.n_views=4"])
+    mip = _compose(["protocol=two_stage_mip", "dataset.n_views=4"])
+    assert mip.stage1.model._target_.endswith("MipGaussianSplatModel")
+    assert plain.stage1.model._target_.endswith(".GaussianSplatModel")
+    assert mip.rasterizer.antialiased and not plain.rasterizer.antialiased
+    assert mip.model.filter_3d == 0.2 and plain.model.filter_3d == 0.0
+    assert mip.init.run_dir.endswith("/mip_views4_it1500_seed0")
+    assert plain.init.run_dir.endswith("/views4_it1500_seed0") and "mip_" not in plain.init.run_dir
+    for key in ("strategy", "init", "optim", "trainer", "loss"):
+        a, b = OmegaConf.to_container(plain[key]), OmegaConf.to_container(mip[key])
+        if key == "init":
+            a.pop("run_dir"), b.pop("run_dir")
+        assert a == b, key
+    # the CLI first stage keeps its own path (no stage1 node there, no prefix)
+    assert _compose(["+experiment=gs3d_stage1"]).paths.stage1_dir.endswith("/views8_it1500_seed0")
