@@ -86,18 +86,25 @@ def test_contract_keys_exist():
         assert OmegaConf.select(cfg, key, default="__missing__") != "__missing__", key
 
 
-@pytest.mark.parametrize("extra", [[], ["+ablation=no_norm"], ["+ablation=mlp_backbone"]])
-def test_two_stage_experiment_is_the_main_job(extra):
-    """`+experiment=splatfields3d_2stage` composes the same model, strategy and init as `python -m src.run`.
+@pytest.mark.parametrize("extra", [[], ["+ablation=no_norm"], ["+ablation=mlp_backbone"], ["dataset.n_views=4"]])
+def test_the_main_job_is_splatfields3d_mip_and_splatfields3d_2stage_the_papers_protocol(extra):
+    """`python -m src.run` composes the same model, strategy, init, first stage and rasterizer as
+    `+experiment=splatfields3d_mip`; `+experiment=splatfields3d_2stage` differs only by its protocol.
 
-    The experiment extends `splatfields3d`, which selects densification for the single-stage protocol;
-    the two-stage protocol keeps its query points fixed, so the experiment must not inherit it.
+    The experiments extend `splatfields3d`, which selects densification for the single-stage protocol;
+    the two-stage protocols keep their query points fixed, so they must not inherit it.
     """
     main = _compose(extra)
-    exp = _compose(["+experiment=splatfields3d_2stage", *extra])
-    for key in ("strategy", "init", "model", "stage1", "loss", "optim", "trainer"):
-        assert OmegaConf.to_container(exp[key]) == OmegaConf.to_container(main[key]), key
-    assert exp.strategy._target_.endswith("NoDensification")
+    mip = _compose(["+experiment=splatfields3d_mip", *extra])
+    paper = _compose(["+experiment=splatfields3d_2stage", *extra])
+    paper_protocol = _compose(["+experiment=splatfields3d_2stage", "protocol=two_stage_mip", *extra])
+    for key in ("strategy", "init", "model", "stage1", "loss", "optim", "trainer", "rasterizer"):
+        assert OmegaConf.to_container(mip[key]) == OmegaConf.to_container(main[key]), key
+        assert OmegaConf.to_container(paper_protocol[key]) == OmegaConf.to_container(main[key]), key
+    for cfg in (main, paper):
+        assert cfg.strategy._target_.endswith("NoDensification")
+    assert paper.stage1.model._target_.endswith(".GaussianSplatModel") and paper.model.filter_3d == 0.0
+    assert main.stage1.model._target_.endswith("MipGaussianSplatModel") and main.rasterizer.antialiased
 
 
 def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
