@@ -37,9 +37,10 @@ MATCH_KEYS = ("scene", "n_views", "seed", "iterations", "n_points", "model")
 
 
 def first_stage_config(cfg: DictConfig) -> DictConfig:
-    """``cfg`` with the model, optimiser, strategy, initialisation and losses of the 3DGS first stage.
+    """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
-    Mirrors ``conf/experiment/gs3d.yaml``: method gs3d, L_norm and L_Moran off, ``stage1.iterations``.
+    Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
+    ``protocol=two_stage_mip``): L_norm and L_Moran off, ``stage1.iterations``.
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -47,7 +48,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # resolved before init is replaced below
         for group in ("model", "optim", "strategy", "init"):
             c[group] = c.stage1[group]
-        c.method = "gs3d"
+        c.method = str(cfg.stage1.get("method", "gs3d"))
         c.loss.lambda_norm = 0.0
         c.loss.lambda_moran = 0.0
         c.trainer.iterations = iterations
@@ -98,7 +99,7 @@ def _locked(path: Path):
 
 
 def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit: Callable) -> dict | None:
-    """Make sure ``init.run_dir`` holds the 3DGS first stage for this run; train it if missing.
+    """Make sure ``init.run_dir`` holds the first stage for this run; train it if missing.
 
     Args:
         cfg: the run's config; acts only when it has ``stage1.auto: true`` and ``init.run_dir``.
@@ -117,11 +118,13 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
         trained_now = rec is None
         if trained_now:
             partial = final.with_name(final.name + ".partial")
-            log.info("first stage missing: training 3DGS for %d iterations in %s", expected["iterations"], partial)
+            method = str(cfg.stage1.get("method", "gs3d"))
+            log.info("first stage missing: training %s for %d iterations in %s", method, expected["iterations"],
+                     partial)
             c1 = first_stage_config(cfg)
             model, _, stats = fit(c1, scene, partial, device, seed_everything(int(cfg.seed)))
             write_baked_ply(model, partial)
-            rec = {"status": "ok", "method": "gs3d", "experiment": "gs3d_stage1 (in-process)",
+            rec = {"status": "ok", "method": method, "experiment": f"{method} first stage (in-process)",
                    "keys": {k: expected[k] for k in ("scene", "n_views", "seed", "iterations")},
                    "stage1_keys": expected, "metrics": {"train_s": stats["train_s"], "n_splats": model.n_splats}}
             write_json(partial / "metrics.json", rec)
