@@ -300,6 +300,25 @@ def test_lock_is_released_by_a_killed_holder(tmp_path):
     RunLock(tmp_path).acquire().release()
 
 
+
+def test_extension_build_lock_left_by_a_killed_builder_is_cleared(tmp_path, monkeypatch):
+    """A builder killed mid-compile leaves torch's file baton in the build directory; the next build
+    must not wait for it forever (the kernel lock it takes first says no other builder is alive)."""
+    from torch.utils import cpp_extension
+
+    from src.rasterizer import _build
+
+    monkeypatch.setenv("SPLATFIELDS_EXT_DIR", str(tmp_path))
+    flags = _build.projection_compile_flags()
+    build_dir = tmp_path / f"surfel_cpu_{_build.build_key(flags, _build.SURFEL_SOURCES)}"
+    build_dir.mkdir()
+    (build_dir / "lock").touch()  # the dead builder's baton
+    seen = {}
+    monkeypatch.setattr(cpp_extension, "load", lambda **kw: seen.update(
+        baton=(Path(kw["build_directory"]) / "lock").exists(), dir=kw["build_directory"]))
+    _build._load_unit("surfel_cpu", _build.SURFEL_SOURCES, [], flags, verbose=False)
+    assert seen == {"baton": False, "dir": str(build_dir)}
+
 # -- runs that collapse ----------------------------------------------------------------------------------------
 def test_splats_flying_away_is_a_failed_run(scene_root, tmp_path):
     out = tmp_path / "run"

@@ -14,12 +14,10 @@ renames it into place when done, the others wait and read it.
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import shutil
 from collections.abc import Callable
-from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -28,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from src.data.base import Scene
 from src.io.ply import write_baked_ply
 from src.utils.record import read_json, write_json
+from src.utils.runlock import exclusive
 from src.utils.seed import seed_everything
 
 log = logging.getLogger(__name__)
@@ -87,17 +86,6 @@ def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
     return rec
 
 
-@contextmanager
-def _locked(path: Path):
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
-
-
 def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit: Callable) -> dict | None:
     """Make sure ``init.run_dir`` holds the first stage for this run; train it if missing.
 
@@ -113,7 +101,7 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
         return None
     final = Path(str(cfg.init.run_dir))
     expected = expected_keys(cfg, scene)
-    with _locked(final.with_name(final.name + ".lock")):
+    with exclusive(final.with_name(final.name + ".lock")):
         rec = check_first_stage(final, expected)
         trained_now = rec is None
         if trained_now:

@@ -9,8 +9,9 @@ persistent cache directory keyed by a hash of the sources, compiler flags, torch
         /project_cpu_<hash>/     csrc/project_cpu.cpp: EWA projection forward/backward
         /surfel_cpu_<hash>/      csrc/surfel_cpu.cpp: 2D Gaussian surfel compositing forward/backward
 
-so later processes only load the shared objects. torch's loader holds a file lock in each
-directory while compiling, so concurrent processes (e.g. pytest-xdist workers) build once.
+so later processes only load the shared objects. A kernel lock (``build.flock``, released when its
+holder dies) serialises the builders of each directory, so concurrent processes (e.g. pytest-xdist
+workers) build once and a builder killed mid-compile does not leave later ones waiting.
 Importing this module does not build anything; call :func:`load_extension`.
 
 The C++ side includes only light ATen headers and registers its functions with ``TORCH_LIBRARY``
@@ -40,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import torch
+
+from src.utils.runlock import exclusive
 
 CSRC = Path(__file__).resolve().parent / "csrc"
 SOURCES = [CSRC / "rasterize_cpu.cpp"]
@@ -125,23 +128,28 @@ def _load_unit(name: str, sources: list[Path], deps: list[Path], flags: list[str
     key = build_key(flags, sources + deps)
     build_dir = cache_root() / f"{name}_{key}"
     build_dir.mkdir(parents=True, exist_ok=True)
-    try:
-        cpp_extension.load(
-            name=f"splatfields_{name}_{key}",
-            sources=[str(p) for p in sources],
-            extra_cflags=list(flags),  # copies: torch appends to the lists it is given
-            extra_ldflags=list(LDFLAGS),
-            extra_include_paths=[str(CSRC)],
-            build_directory=str(build_dir),
-            verbose=verbose,
-            is_python_module=False,
-        )
-    except Exception as exc:  # compiler missing, ninja missing, compile error
-        raise RuntimeError(
-            f"Building the CPU extension {name} failed ({type(exc).__name__}: {exc}). "
-            "It needs g++ with OpenMP and the `ninja` package; the build directory is "
-            f"{build_dir}. Use rasterizer=torch_ref as a slow fallback."
-        ) from exc
+    # torch's loader takes a file baton (<build_dir>/lock) that a builder killed mid-compile leaves behind,
+    # and every later process then waits for it forever. Builders here first take a kernel lock, which
+    # dies with its holder; whoever holds it is the only builder, so a baton it finds is stale.
+    with exclusive(build_dir / "build.flock"):
+        (build_dir / "lock").unlink(missing_ok=True)
+        try:
+            cpp_extension.load(
+                name=f"splatfields_{name}_{key}",
+                sources=[str(p) for p in sources],
+                extra_cflags=list(flags),  # copies: torch appends to the lists it is given
+                extra_ldflags=list(LDFLAGS),
+                extra_include_paths=[str(CSRC)],
+                build_directory=str(build_dir),
+                verbose=verbose,
+                is_python_module=False,
+            )
+        except Exception as exc:  # compiler missing, ninja missing, compile error
+            raise RuntimeError(
+                f"Building the CPU extension {name} failed ({type(exc).__name__}: {exc}). "
+                "It needs g++ with OpenMP and the `ninja` package; the build directory is "
+                f"{build_dir}. Use rasterizer=torch_ref as a slow fallback."
+            ) from exc
 
 
 def load_extension(verbose: bool = False) -> Any:

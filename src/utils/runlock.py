@@ -1,4 +1,5 @@
-"""One writer per run directory: an advisory lock file ``<run>/.lock`` held for the whole run.
+"""One writer per run directory: an advisory lock file ``<run>/.lock`` held for the whole run; and
+:func:`exclusive`, a waiting lock for work that one process at a time may do (a first stage, a build).
 
 ``fcntl.flock`` locks are released by the kernel when their holder exits, also after ``kill -9``, so a
 killed run never leaves a stale lock and its directory can be resumed. The file itself stays (it
@@ -10,6 +11,8 @@ from __future__ import annotations
 import fcntl
 import os
 import socket
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
 
@@ -57,3 +60,19 @@ class RunLock:
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.release()
+
+
+@contextmanager
+def exclusive(path: Path | str) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``path`` (created with its parents if missing), waiting for its holder.
+
+    Released on exit, and by the kernel if the holder dies (also ``kill -9``), so it never goes stale.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
