@@ -47,7 +47,7 @@ def test_flop_counter_matches_hand_count_from_layer_shapes():
 
 def test_training_bench_reports_flop_floor_and_split(tmp_path):
     out = tmp_path / "bench.json"
-    assert main(["--methods", "gs3d,splatfields3d_2stage", "--sizes", "300", "--iters", "1", "--warmup", "0",
+    assert main(["--methods", "gs3d,splatfields3d_mip", "--sizes", "300", "--iters", "1", "--warmup", "0",
                  "--width", "32", "--fps-width", "32", "--out", str(out)]) == 0
     data = json.loads(out.read_text())
     assert data["settings"]["peaks"]["float32"]["matmul_gflops"] > 0
