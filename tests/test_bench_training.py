@@ -72,3 +72,20 @@ def test_grouped_convolution_flops_match_a_hand_count(groups):
     x = torch.randn(1, 96, 20, 20, requires_grad=True)
     counted = count_flops(lambda: conv(x).sum().backward())
     assert counted["conv"] == 3 * 2 * (96 * 20 * 20) * (96 // groups) * 9
+
+
+@pytest.mark.parametrize("with_r", [False, True])
+def test_fused_linear_relu_flops_match_a_hand_count(with_r):
+    """The heads' fused hidden layer (oneDNN forward, hand-written backward): 3 x 2 x N x in x out."""
+    import torch
+
+    from src.bench.flops import count_flops
+    from src.fields.linear_relu import linear_relu
+
+    n, d_in, d_out = 50, 16, 24
+    h = torch.randn(n, d_in, requires_grad=True)
+    w = torch.randn(d_out, d_in, requires_grad=True)
+    b = None if with_r else torch.randn(d_out, requires_grad=True)
+    r = torch.randn(n, d_out, requires_grad=True) if with_r else None
+    counted = count_flops(lambda: linear_relu(h, w, b, r).sum().backward())
+    assert counted == {"total": 3 * 2 * n * d_in * d_out, "conv": 0, "matmul": 3 * 2 * n * d_in * d_out}

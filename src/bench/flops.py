@@ -2,7 +2,7 @@
 
 ``count_flops(fn)`` runs ``fn`` (a forward + backward) under ``torch.utils.flop_counter.FlopCounterMode``
 and splits the count into convolutions (``aten.convolution`` and its backward) and matrix products
-(``mm``, ``addmm``, ``bmm``, ``baddbmm``, attention): the only ops the counter prices; elementwise ops,
+(``mm``, ``addmm``, ``bmm``, ``baddbmm``, attention, oneDNN's fused linear): the only ops priced; elementwise ops,
 normalisations and the rasterizer count zero. A multiply-add is 2 FLOPs. ``tests/test_bench_training.py``
 checks the counter against a hand count from layer shapes.
 
@@ -18,7 +18,7 @@ from collections.abc import Callable
 import torch
 
 CONV_OPS = ("convolution", "convolution_backward", "_convolution")
-MATMUL_OPS = ("mm", "addmm", "bmm", "baddbmm", "_scaled_dot_product_flash_attention",
+MATMUL_OPS = ("mm", "addmm", "bmm", "baddbmm", "_linear_pointwise", "_scaled_dot_product_flash_attention",
               "_scaled_dot_product_efficient_attention", "_scaled_dot_product_cudnn_attention")
 
 
@@ -42,6 +42,18 @@ def conv_backward_flops(grad_out_shape, x_shape, w_shape, _bias, _stride, _paddi
     return forward * (int(bool(output_mask[0])) + int(bool(output_mask[1])))
 
 
+def linear_pointwise_flops(x_shape, *args, out_shape=None, **kwargs) -> int:
+    """FLOPs of oneDNN's fused linear ``mkldnn._linear_pointwise`` (both overloads): 2 x rows x in x out.
+
+    The field heads' hidden layers run through it (``src/fields/linear_relu.py``); torch's counter
+    does not price it, so without this their forward products would count zero.
+    """
+    rows = 1
+    for d in x_shape[:-1]:
+        rows *= int(d)
+    return 2 * rows * int(x_shape[-1]) * int(out_shape[-1])
+
+
 def count_flops(fn: Callable[[], object]) -> dict[str, int]:
     """FLOPs of running ``fn()`` once: ``{"total", "conv", "matmul"}`` (2 FLOPs per multiply-add).
 
@@ -50,7 +62,8 @@ def count_flops(fn: Callable[[], object]) -> dict[str, int]:
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    mapping = {torch.ops.aten.convolution_backward: conv_backward_flops}
+    mapping = {torch.ops.aten.convolution_backward: conv_backward_flops,
+               torch.ops.mkldnn._linear_pointwise: linear_pointwise_flops}
     with FlopCounterMode(display=False, custom_mapping=mapping) as counter:
         fn()
     conv = matmul = 0
