@@ -31,10 +31,6 @@ from src.utils.seed import seed_everything
 
 log = logging.getLogger(__name__)
 
-#: Keys of a first-stage record that must match the run that reads it.
-MATCH_KEYS = ("scene", "n_views", "seed", "iterations", "n_points", "model")
-
-
 def first_stage_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
@@ -106,10 +102,10 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
         trained_now = rec is None
         if trained_now:
             partial = final.with_name(final.name + ".partial")
-            method = str(cfg.stage1.get("method", "gs3d"))
+            c1 = first_stage_config(cfg)
+            method = str(c1.method)
             log.info("first stage missing: training %s for %d iterations in %s", method, expected["iterations"],
                      partial)
-            c1 = first_stage_config(cfg)
             model, _, stats = fit(c1, scene, partial, device, seed_everything(int(cfg.seed)))
             write_baked_ply(model, partial)
             rec = {"status": "ok", "method": method, "experiment": f"{method} first stage (in-process)",
