@@ -26,6 +26,21 @@ def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
     assert "x 3DGS" in capsys.readouterr().out
 
 
+def test_training_bench_times_a_smaller_tri_plane_beside_the_configured_one(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    code = main(["--methods", "gs3d,splatfields3d", "--sizes", "300", "--iters", "1", "--warmup", "0",
+                 "--width", "32", "--fps-width", "32", "--plane-blocks", "1,3", "--out", str(out)])
+    assert code == 0, capsys.readouterr().out
+    rows = json.loads(out.read_text())["rows"]
+    # the configured size (3 blocks: 80 px at scale=cpu) is timed once; 1 block (20 px) adds a row; gs3d has none
+    assert [(r["method"], r["plane_blocks"]) for r in rows] == [("gs3d", None), ("splatfields3d", 3),
+                                                               ("splatfields3d", 1)]
+    assert rows[2]["overrides"] == ["field_budget.triplane_up_blocks=1"] and rows[1]["overrides"] == []
+    assert [r["plane_px"] for r in rows] == [None, 80, 20]
+    assert rows[2]["generator_flops"] < rows[1]["generator_flops"] / 4  # 20 px planes: fewer than 1/4 of the FLOPs
+    assert "20px" in capsys.readouterr().out
+
+
 def test_flop_counter_matches_hand_count_from_layer_shapes():
     import torch
 

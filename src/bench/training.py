@@ -6,8 +6,9 @@ with the rasterizer ``auto`` picks, and times :meth:`src.trainer.Trainer.train_s
 field (splat prediction), rasterizer (forward), backward and optimizer. Densification is off so the
 splat count stays equal across methods. It also bakes the model and times rendering at 200 px, and
 times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_ms``).
-``--head-widths`` repeats the methods with neural fields at other ``field_budget.head_width`` values
-(the size a capacity search may choose), so the SplatFields ÷ 3DGS ratio can be read per width.
+``--head-widths`` and ``--plane-blocks`` repeat the methods with neural fields at other
+``field_budget.head_width`` / ``field_budget.triplane_up_blocks`` values (the sizes a capacity search
+may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run.
 Timings are medians over the timed iterations; compare them as ratios within one run.
 
 The floor: each row counts the FLOPs of its networks per iteration (forward + backward of the splat
@@ -32,6 +33,7 @@ import statistics
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 METHODS = ("gs3d", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp", "deformable3dgs",
@@ -54,10 +56,11 @@ def _rss_peak_mb() -> float:
 
 
 def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
-            rasterizer: str = "auto", head_width: int | None = None) -> dict:
+            rasterizer: str = "auto", overrides: Sequence[str] = ()) -> dict:
     """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process).
 
-    ``head_width`` overrides ``field_budget.head_width`` (wide heads; narrow heads get half).
+    ``overrides``: Hydra overrides of this variant, e.g. ``field_budget.head_width=64`` (wide heads;
+    narrow heads get half) or ``field_budget.triplane_up_blocks=2`` (40 px tri-planes).
     """
     from dataclasses import replace
     from types import SimpleNamespace
@@ -77,10 +80,8 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        overrides = [f"+experiment={method}", f"rasterizer={rasterizer}"]
-        if head_width is not None:
-            overrides.append(f"field_budget.head_width={head_width}")
-        cfg = compose(config_name="config", overrides=overrides)
+        cfg = compose(config_name="config",
+                      overrides=[f"+experiment={method}", f"rasterizer={rasterizer}", *overrides])
     # Time the phase that dominates training: dynamic models at one of BENCH_FRAMES frames, with the
     # deformation on (Deformable-3DGS keeps it off during its warm-up; the warm-up is skipped here).
     dynamic = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or "warm_up" in cfg.model
@@ -113,9 +114,11 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     ms = {k: statistics.median(v) for k, v in times.items()}
     totals = [sum(times[k][i] for k in PARTS) for i in range(iters)]
     row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field(cfg) else None,
-           "n_splats": model.n_splats, "n_params": model.n_params(), "rasterizer":
-           getattr(rasterizer, "name", type(rasterizer).__name__), "ms": ms, "iter_ms": statistics.median(totals),
-           "iter_ms_min": min(totals)}
+           "plane_blocks": _plane_blocks(cfg),
+           "plane_px": getattr(model.network.backbone, "resolution", None) if has_field(cfg) else None,
+           "overrides": list(overrides), "n_splats": model.n_splats,
+           "n_params": model.n_params(), "rasterizer": getattr(rasterizer, "name", type(rasterizer).__name__),
+           "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals)}
     row["backbone_ms"] = _backbone_ms(model, iters) if has_field(cfg) else None
     row.update(_flops(model, cam, has_field(cfg)))
     row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup)
@@ -247,39 +250,54 @@ def _backbone_ms(model, iters: int) -> float | None:
     return statistics.median(times[1:])
 
 
-def _run_isolated(method: str, n: int, args: argparse.Namespace, head_width: int | None = None) -> dict:
+def _plane_blocks(cfg) -> int | None:
+    """The tri-plane CNN's up-sampling blocks (``n_up_blocks``), None without a CNN tri-plane."""
+    from omegaconf import OmegaConf
+
+    blocks = OmegaConf.select(cfg, "model.network.backbone.n_up_blocks", default=None)
+    return int(blocks) if blocks is not None else None
+
+
+def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequence[str] = ()) -> dict:
     cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
            "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width),
            "--rasterizer", args.rasterizer]
-    if head_width is not None:
-        cmd += ["--head-width-single", str(head_width)]
+    for o in overrides:
+        cmd += ["--override-single", o]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     if p.returncode != 0:
-        return {"method": method, "head_width": head_width, "n_splats": n,
+        return {"method": method, "head_width": None, "overrides": list(overrides), "n_splats": n,
                 "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
+def _label(r: dict) -> str:
+    """``method width planes`` columns of a row (planes: the tri-plane side in px; '-' without one)."""
+    planes = f"{r['plane_px']}px" if r.get("plane_px") is not None else "-"
+    return f"{r['method']:<17} {r.get('head_width') or '-':>5} {planes:>6}"
+
+
 def print_table(rows: list[dict]) -> None:
-    hdr = f"{'method':<15} {'width':>5} {'splats':>7} {'params':>9} " + " ".join(f"{k:>10}" for k in PARTS)
+    hdr = f"{'method':<17} {'width':>5} {'planes':>6} {'splats':>7} {'params':>9} "
+    hdr += " ".join(f"{k:>10}" for k in PARTS)
     hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'CNN ms':>7} {'peak MB':>8} {'FPS@200':>8}"
     hdr += f" {'GFLOP':>7} {'prec':>7} {'floor ms':>8} {'x floor':>7}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
         if "error" in r:
-            print(f"{r['method']:<15} {r.get('head_width') or '-':>5} {r['n_splats']:>7} failed: {r['error']}")
+            print(f"{r['method']:<17} {' '.join(r.get('overrides', []))} {r['n_splats']:>7} failed: {r['error']}")
             continue
         parts = " ".join(f"{r['ms'][k]:>10.1f}" for k in PARTS)
         ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
-        name = f"{r['method']:<15} {r.get('head_width') or '-':>5}"
+        name = _label(r)
         cnn = f"{r['backbone_ms']:.1f}" if r.get("backbone_ms") is not None else "-"
         xf = f"{r['x_flop_floor']:.2f}" if r.get("x_flop_floor") else "-"
         print(f"{name} {r['n_splats']:>7} {r['n_params']:>9} {parts} {r['iter_ms']:>8.1f} {ratio:>7} {cnn:>7} "
               f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f} {r['flops'] / 1e9:>7.2f} {r['precision']:>7} "
               f"{r['flop_floor_ms']:>8.1f} {xf:>7}")
     print()
-    hdr = f"{'split (ms)':<15} {'width':>5} {'splats':>7} " + " ".join(f"{k:>13}" for k in SPLIT)
+    hdr = f"{'split (ms)':<17} {'width':>5} {'planes':>6} {'splats':>7} " + " ".join(f"{k:>13}" for k in SPLIT)
     hdr += f" {'generator':>9} {'gen GFLOP':>9}"
     print(hdr)
     print("-" * len(hdr))
@@ -287,7 +305,7 @@ def print_table(rows: list[dict]) -> None:
         if "error" in r:
             continue
         gen = f"{r['generator_ms']:.1f}" if r.get("generator_ms") is not None else "-"
-        print(f"{r['method']:<15} {r.get('head_width') or '-':>5} {r['n_splats']:>7} "
+        print(f"{_label(r)} {r['n_splats']:>7} "
               + " ".join(f"{r['split'][k]:>13.1f}" for k in SPLIT) + f" {gen:>9} {r['generator_flops'] / 1e9:>9.2f}")
 
 
@@ -318,6 +336,10 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
     widths = _int_list(args.head_widths) if args.head_widths else []
     if widths is None or any(w < 1 for w in widths):
         ap.error(f"--head-widths {args.head_widths!r}: expected comma-separated positive widths, e.g. 64,32")
+    blocks = _int_list(args.plane_blocks) if args.plane_blocks else []
+    if blocks is None or any(b < 0 for b in blocks):
+        ap.error(f"--plane-blocks {args.plane_blocks!r}: expected comma-separated up-sampling block counts >= 0, "
+                 "e.g. 2,3 (2: 40 px planes, 3: 80 px)")
     if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
         ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
 
@@ -337,13 +359,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--head-widths", default="",
                     help="also time the methods with neural fields at these field_budget.head_width values, "
                          "e.g. 64,32 (the configured width is always timed)")
+    ap.add_argument("--plane-blocks", default="",
+                    help="also time the methods with a CNN tri-plane at these field_budget.triplane_up_blocks "
+                         "values, e.g. 2,3 (40 and 80 px planes; the configured value is always timed)")
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
-    ap.add_argument("--head-width-single", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--override-single", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     check_arguments(ap, args)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
-                                 args.fps_width, args.rasterizer, args.head_width_single)))
+                                 args.fps_width, args.rasterizer, args.override_single)))
         return 0
     methods = ["gs3d", "splatfields3d_mip"] if args.quick else args.methods.split(",")
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
@@ -359,9 +384,12 @@ def main(argv: list[str] | None = None) -> int:
     print("peaks GFLOP/s: " + ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} conv {p['conv_gflops']:.0f}"
                                          for d, p in peaks.items()))
     rows = [_run_isolated(m, n, args) for n in sizes for m in methods]
-    extra_widths = [int(w) for w in args.head_widths.split(",") if w]
-    rows += [_run_isolated(r["method"], n, args, w) for n in sizes for w in extra_widths for r in list(rows)
-             if r["n_splats"] == n and r.get("head_width") not in (None, w)]
+    configured = list(rows)
+    for key, field, values in (("head_width", "field_budget.head_width", args.head_widths),
+                               ("plane_blocks", "field_budget.triplane_up_blocks", args.plane_blocks)):
+        rows += [_run_isolated(r["method"], r["n_splats"], args, [f"{field}={v}"])
+                 for v in (int(x) for x in values.split(",") if x) for r in configured
+                 if r.get(key) not in (None, v)]
     for r in rows:
         base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
                     None)
