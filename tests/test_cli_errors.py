@@ -55,7 +55,8 @@ def test_tables_valid_keys_still_work(sweep):
     ("training", ["--sizes", "10k"], "--sizes '10k': expected comma-separated positive splat counts"),
     ("training", ["--iters", "0"], "--iters 0: expected a positive number"),
     ("training", ["--head-widths", "-4"], "--head-widths '-4': expected comma-separated positive widths"),
-    ("training", ["--plane-blocks", "two"], "--plane-blocks 'two': expected comma-separated up-sampling block"),
+    ("training", ["--plane-blocks", "two"], "--plane-blocks 'two': expected comma-separated positive up-sampling"),
+    ("training", ["--plane-blocks", "0"], "--plane-blocks '0': expected comma-separated positive up-sampling"),
     ("training", ["--rasterizer", "vulkan"], "--rasterizer 'vulkan': choose from: auto, cpu, torch_ref, gsplat"),
 ])
 def test_bench_bad_arguments_fail_at_once(sub, args, needle):

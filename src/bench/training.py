@@ -337,9 +337,9 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
     if widths is None or any(w < 1 for w in widths):
         ap.error(f"--head-widths {args.head_widths!r}: expected comma-separated positive widths, e.g. 64,32")
     blocks = _int_list(args.plane_blocks) if args.plane_blocks else []
-    if blocks is None or any(b < 0 for b in blocks):
-        ap.error(f"--plane-blocks {args.plane_blocks!r}: expected comma-separated up-sampling block counts >= 0, "
-                 "e.g. 2,3 (2: 40 px planes, 3: 80 px)")
+    if blocks is None or any(b < 1 for b in blocks):
+        ap.error(f"--plane-blocks {args.plane_blocks!r}: expected comma-separated positive up-sampling block "
+                 "counts, e.g. 2,3 (2: 40 px planes, 3: 80 px)")
     if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
         ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
 
