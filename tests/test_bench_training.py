@@ -9,12 +9,17 @@ import pytest
 from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main
 
 
-def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
+def _tiny_bench(tmp_path, capsys, n_splats: int, *variant: str) -> list[dict]:
+    """The rows of a one-step bench of gs3d and splatfields3d at 32 px with a variant option."""
     out = tmp_path / "bench.json"
-    code = main(["--methods", "gs3d,splatfields3d", "--sizes", "400", "--iters", "1", "--warmup", "0",
-                 "--width", "32", "--fps-width", "32", "--head-widths", "32", "--out", str(out)])
+    code = main(["--methods", "gs3d,splatfields3d", "--sizes", str(n_splats), "--iters", "1", "--warmup", "0",
+                 "--width", "32", "--fps-width", "32", *variant, "--out", str(out)])
     assert code == 0, capsys.readouterr().out
-    rows = json.loads(out.read_text())["rows"]
+    return json.loads(out.read_text())["rows"]
+
+
+def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
+    rows = _tiny_bench(tmp_path, capsys, 400, "--head-widths", "32")
     assert [(r["method"], r["head_width"]) for r in rows] == [("gs3d", None), ("splatfields3d", 128),
                                                              ("splatfields3d", 32)]
     for r in rows:
@@ -27,11 +32,7 @@ def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):
 
 
 def test_training_bench_times_a_smaller_tri_plane_beside_the_configured_one(tmp_path, capsys):
-    out = tmp_path / "bench.json"
-    code = main(["--methods", "gs3d,splatfields3d", "--sizes", "300", "--iters", "1", "--warmup", "0",
-                 "--width", "32", "--fps-width", "32", "--plane-blocks", "1,3", "--out", str(out)])
-    assert code == 0, capsys.readouterr().out
-    rows = json.loads(out.read_text())["rows"]
+    rows = _tiny_bench(tmp_path, capsys, 300, "--plane-blocks", "1,3")
     # the configured size (3 blocks: 80 px at scale=cpu) is timed once; 1 block (20 px) adds a row; gs3d has none
     assert [(r["method"], r["plane_blocks"]) for r in rows] == [("gs3d", None), ("splatfields3d", 3),
                                                                ("splatfields3d", 1)]
