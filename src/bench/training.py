@@ -258,7 +258,9 @@ def _plane_blocks(cfg) -> int | None:
     return int(blocks) if blocks is not None else None
 
 
-def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequence[str] = ()) -> dict:
+def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequence[str] = (),
+                  variant: dict | None = None) -> dict:
+    """One row, measured in a subprocess; ``variant`` (e.g. ``{"head_width": 32}``) names a failed row."""
     cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
            "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width),
            "--rasterizer", args.rasterizer]
@@ -266,7 +268,8 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequ
         cmd += ["--override-single", o]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
     if p.returncode != 0:
-        return {"method": method, "head_width": None, "overrides": list(overrides), "n_splats": n,
+        return {"method": method, "head_width": None, "plane_blocks": None, **(variant or {}),
+                "overrides": list(overrides), "n_splats": n,
                 "error": p.stderr.strip().splitlines()[-1] if p.stderr else "failed"}
     return json.loads(p.stdout.strip().splitlines()[-1])
 
@@ -387,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     configured = list(rows)
     for key, field, values in (("head_width", "field_budget.head_width", args.head_widths),
                                ("plane_blocks", "field_budget.triplane_up_blocks", args.plane_blocks)):
-        rows += [_run_isolated(r["method"], r["n_splats"], args, [f"{field}={v}"])
+        rows += [_run_isolated(r["method"], r["n_splats"], args, [f"{field}={v}"], {key: v})
                  for v in (int(x) for x in values.split(",") if x) for r in configured
                  if r.get(key) not in (None, v)]
     for r in rows:
