@@ -32,7 +32,7 @@ from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
 from src.fields.fused import HeadInput, add_pe, first_layers, head_tail, head_weights
 from src.fields.mlp import FieldMLP, get_activation
-from src.utils.cpu import cpu_has_native_bf16
+from src.utils.cpu import resolve_autocast_bf16
 
 SCALE_MODES = ("exp", "additive_quirk")
 
@@ -87,7 +87,8 @@ class SplatFieldNetwork(nn.Module):
             the reference path (same parameters and state dict, equal up to rounding).
         autocast_bf16: run the fused heads' products in bfloat16 (CPU autocast, float32 master weights,
             output linears in float32): ``True``, ``False`` or ``"auto"`` (on where the CPU multiplies
-            bfloat16 natively, AVX512-BF16/AMX, and the inputs are float32 on the CPU). Fused path only.
+            bfloat16 natively AND a timed matmul shows it faster than float32, ``src.utils.cpu``, and
+            the inputs are float32 on the CPU). Fused path only.
     """
 
     def __init__(
@@ -201,9 +202,7 @@ class SplatFieldNetwork(nn.Module):
             self.flow_pe, self.flow_mlp = None, None
         self._act = get_activation(activation)
         self.fused = bool(fused)
-        if autocast_bf16 not in (True, False, "auto"):
-            raise ValueError(f"autocast_bf16 must be true, false or 'auto', got {autocast_bf16!r}")
-        self.autocast_bf16 = cpu_has_native_bf16() if autocast_bf16 == "auto" else bool(autocast_bf16)
+        self.autocast_bf16 = resolve_autocast_bf16(autocast_bf16, "matmul")
         # PE(x_can) of the fused path, at the largest level count of the heads that read x_can
         # (a non-persistent buffer only: the state dict is unchanged).
         self._shared_pe = PositionalEncoding(max(pe.n_levels for pe in self._xcan_heads()[1]))

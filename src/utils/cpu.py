@@ -1,9 +1,20 @@
-"""What this CPU can do natively (read once from /proc/cpuinfo)."""
+"""What this CPU can do natively (read once from /proc/cpuinfo), and whether bfloat16 pays off on it.
+
+A CPU flag says that bfloat16 products are *native*, not that they are *faster*: on CPUs whose
+AVX512-BF16 dot-product instruction issues once per cycle where float32 FMAs issue twice (and
+without AMX), oneDNN's bf16 matmuls and convolutions run at about half the float32 speed. So
+``autocast_bf16: auto`` asks ``bf16_pays_off``, which times both dtypes on this machine once per
+process, at the shapes training uses, and takes bf16 only when it is clearly faster.
+"""
 
 from __future__ import annotations
 
 import functools
+import time
+from collections.abc import Callable
 from pathlib import Path
+
+BF16_MIN_SPEEDUP = 1.25  # bf16 must beat float32 by this factor: a clear win, not timing noise
 
 
 @functools.cache
@@ -15,3 +26,54 @@ def cpu_has_native_bf16() -> bool:
         return False
     words = set(flags.split())
     return bool(words & {"avx512_bf16", "amx_bf16"})
+
+
+def _best_time(fn: Callable[[], object], reps: int) -> float:
+    """Fastest of ``reps`` timed calls of ``fn`` after one warm-up call (seconds)."""
+    fn()
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+@functools.cache
+def bf16_speedup(kind: str) -> float:
+    """float32 time / bfloat16 time of one representative CPU product on this machine (> 1: bf16 faster).
+
+    ``kind``: "matmul" (a field head's hidden layer, [4096, 128] x [128, 128]) or "conv" (a tri-plane
+    generator convolution, 3 stacked planes of 32 channels at 48 px, 3x3, channels-last). Both dtypes
+    are timed interleaved, best of 5, with the process's torch thread count; ~50 ms in all, once.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    if kind not in ("matmul", "conv"):
+        raise ValueError(f"bf16_speedup kind must be 'matmul' or 'conv', got {kind!r}")
+    g = torch.Generator().manual_seed(0)
+    best = {}
+    with torch.no_grad():
+        for dt in (torch.float32, torch.bfloat16):
+            if kind == "matmul":
+                a = torch.randn(4096, 128, generator=g).to(dt)  # [N, width]
+                w = torch.randn(128, 128, generator=g).to(dt)  # [width, width]
+                best[dt] = _best_time(lambda a=a, w=w: a @ w, 5)
+            else:
+                x = torch.randn(1, 96, 48, 48, generator=g).to(dt).contiguous(memory_format=torch.channels_last)
+                w = torch.randn(96, 32, 3, 3, generator=g).to(dt).contiguous(memory_format=torch.channels_last)
+                best[dt] = _best_time(lambda x=x, w=w: F.conv2d(x, w, padding=1, groups=3), 5)
+    return best[torch.float32] / best[torch.bfloat16]
+
+
+def bf16_pays_off(kind: str) -> bool:
+    """True when bf16 is native here AND measured at least ``BF16_MIN_SPEEDUP`` faster for ``kind``."""
+    return cpu_has_native_bf16() and bf16_speedup(kind) >= BF16_MIN_SPEEDUP
+
+
+def resolve_autocast_bf16(value: bool | str, kind: str) -> bool:
+    """The ``autocast_bf16`` config value (true, false or "auto") as a bool; "auto" = ``bf16_pays_off``."""
+    if value not in (True, False, "auto"):
+        raise ValueError(f"autocast_bf16 must be true, false or 'auto', got {value!r}")
+    return bf16_pays_off(kind) if value == "auto" else bool(value)

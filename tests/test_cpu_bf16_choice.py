@@ -1,0 +1,44 @@
+"""``autocast_bf16: auto`` takes bfloat16 only where it is native AND measured faster (src/utils/cpu.py)."""
+
+from __future__ import annotations
+
+import pytest
+
+import src.utils.cpu as cpu
+
+
+@pytest.fixture
+def fake_cpu(monkeypatch):
+    """Replace the CPU flag and the timed speed-up with given values."""
+    def setup(native: bool, speedup: float) -> None:
+        monkeypatch.setattr(cpu, "cpu_has_native_bf16", lambda: native)
+        monkeypatch.setattr(cpu, "bf16_speedup", lambda kind: speedup)
+    return setup
+
+
+@pytest.mark.parametrize("native, speedup, expected", [
+    (True, 2.2, True),    # bf16 dot products at twice the float32 rate: take them
+    (True, 0.55, False),  # native but half as fast (no AMX, one bf16 port): float32
+    (True, 1.1, False),   # within noise of float32: keep float32
+    (False, 3.0, False),  # not native: never
+])
+def test_auto_follows_flag_and_measured_speedup(fake_cpu, native, speedup, expected):
+    fake_cpu(native, speedup)
+    assert cpu.bf16_pays_off("matmul") is expected
+    assert cpu.resolve_autocast_bf16("auto", "conv") is expected
+
+
+def test_explicit_values_are_kept_and_bad_values_named(fake_cpu):
+    fake_cpu(False, 0.5)
+    assert cpu.resolve_autocast_bf16(True, "matmul") is True
+    assert cpu.resolve_autocast_bf16(False, "matmul") is False
+    with pytest.raises(ValueError, match="autocast_bf16 must be true, false or 'auto', got 'yes'"):
+        cpu.resolve_autocast_bf16("yes", "matmul")
+
+
+def test_speedup_is_measured_on_this_machine():
+    for kind in ("matmul", "conv"):
+        s = cpu.bf16_speedup(kind)
+        assert 0.01 < s < 100.0  # a ratio of two positive times of the same work
+    with pytest.raises(ValueError, match="kind must be 'matmul' or 'conv'"):
+        cpu.bf16_speedup("fft")
