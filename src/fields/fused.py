@@ -4,9 +4,11 @@ Every head ``FieldMLP`` reads ``h_in = [PE(x), f, PE(t)]`` at its first linear a
 linear (``W_skip [h_in, h] = W_x h_in + W_h h``). All those input parts are linear in ``h_in``, so
 for a group of heads that share ``h_in`` they are computed by ONE wide product per input block:
 
-    U = f @ W_f_allᵀ + (b_all + W_t_all PE(t))     f: [N, F], one product for ALL heads
-    U_g += PE_Lmax(x_g) @ W_pe_gᵀ                   per group g: PE once, at the group's largest L
+    U_g = [f, PE_Lmax(x_g)] @ [W_f_g, W_pe_g]ᵀ + (b_g + W_t_g PE(t))    per group g, one product
 
+(f: [N, F] backbone feature; PE once per group, at the group's largest L.) One product per group on
+the narrow concatenated input, rather than f for all groups then PE per group, writes each [N, S_g]
+output once and needs no gather of the groups' gradients in the backward.
 PE(t) is one row per call (all splats share the time), so its part is folded into the bias. A head
 with fewer PE levels than the group's maximum reads a prefix of PE_Lmax (the layout is level-major:
 [x, sin f0 x, cos f0 x, sin f1 x, ...]); its weight is zero-padded. The hidden and output layers then
@@ -61,32 +63,26 @@ class HeadInput:
         self.w_pe, self.w_f, self.w_t, self.b = (torch.cat(w_pe), torch.cat(w_f), torch.cat(w_t), torch.cat(b))
 
 
-def first_layers(groups: Sequence[Sequence[HeadInput]], feat: Tensor, t_enc: Tensor | None) -> list[Tensor]:
-    """The shared-feature part of every head's input-reading linears: one product for all groups.
+def input_layer(heads: Sequence[HeadInput], feat: Tensor, pe: Tensor, t_enc: Tensor | None) -> list[list[Tensor]]:
+    """The input part of every first and skip linear of a group of heads, as ONE product.
+
+    ``[f, PE] [W_f, W_pe]ᵀ + (b + W_t PE(t))``, split per head into its ``[L0, skip_1, ...]`` blocks.
 
     Args:
-        groups: the heads, grouped by the PE(x) block they read.
+        heads: the group's heads (all read the same PE(x) block).
         feat: [N, F] backbone feature (F may be 0).
+        pe: [N, pe_max] the group's PE(x).
         t_enc: [1, T] PE(t) row or None (static).
 
     Returns:
-        per group, [N, S_g] = f W_fᵀ + b + W_t PE(t) (S_g: the group's summed first/skip widths); the
-        group's PE part is added by ``add_pe``.
+        per head, its blocks (each [N, W], views of one [N, S] product).
     """
-    heads = [h for g in groups for h in g]
     b = torch.cat([h.b for h in heads])  # [S]
     if t_enc is not None and t_enc.shape[-1] > 0:
         b = b + t_enc.reshape(-1) @ torch.cat([h.w_t for h in heads]).t()  # [S]
-    widths = [sum(sum(h.sizes) for h in g) for g in groups]
-    if feat.shape[-1] == 0:
-        return [bg.expand(feat.shape[0], -1) for bg in b.split(widths)]
-    u = torch.addmm(b, feat, torch.cat([h.w_f for h in heads]).t())  # [N, S]
-    return list(u.split(widths, dim=1))
-
-
-def add_pe(u: Tensor, heads: Sequence[HeadInput], pe: Tensor) -> list[list[Tensor]]:
-    """u [N, S_g] + PE [N, pe_max] @ W_peᵀ, split per head into its ``[L0, skip_1, ...]`` blocks."""
-    out = torch.addmm(u, pe, torch.cat([h.w_pe for h in heads]).t())  # [N, S_g]
+    w = torch.cat([torch.cat([h.w_f, h.w_pe], dim=1) for h in heads])  # [S, F + pe_max]
+    x = torch.cat([feat, pe.to(feat.dtype)], dim=1) if feat.shape[-1] > 0 else pe  # [N, F + pe_max]
+    out = torch.addmm(b, x, w.t())  # [N, S]
     blocks = out.split([s for h in heads for s in h.sizes], dim=1)
     res, k = [], 0
     for h in heads:

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
-from src.fields.fused import HeadInput, add_pe, first_layers, head_tail, head_weights
+from src.fields.fused import HeadInput, head_tail, head_weights, input_layer
 from src.fields.mlp import FieldMLP, get_activation
 from src.utils.cpu import resolve_autocast_bf16
 
@@ -308,17 +308,14 @@ class SplatFieldNetwork(nn.Module):
             weights = [head_weights(m, fid, tim) for m in mlps]
             heads = [HeadInput(m, w, pe.out_dim(3), pe_max, fd, td)
                      for m, w, pe in zip(mlps, weights, pes, strict=True)]
-            groups: list[list[HeadInput]] = [heads]
+            x_can = canonical
             if self.deform_mlp is not None:
                 wd = head_weights(self.deform_mlp, fid, tim)
                 dim_d = self.deform_pe.out_dim(3)
-                groups.insert(0, [HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)])
-            u = first_layers(groups, feat, t_enc)  # per group [N, S_g]
-            x_can = canonical
-            if self.deform_mlp is not None:
-                (blocks,) = add_pe(u[0], groups[0], self.deform_pe(canonical))
+                deform = HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)
+                (blocks,) = input_layer([deform], feat, self.deform_pe(canonical), t_enc)
                 x_can = canonical + self.deform_weight * head_tail(self.deform_mlp, wd, blocks, last_dtype=last)
-            blocks_o = add_pe(u[-1], heads, self._shared_pe(x_can))
+            blocks_o = input_layer(heads, feat, self._shared_pe(x_can), t_enc)
             outs = {}
             for m, w, b in zip(mlps, weights, blocks_o, strict=True):
                 if m is not self.color_mlp:
