@@ -13,7 +13,9 @@ def fake_cpu(monkeypatch):
     def setup(native: bool, speedup: float) -> None:
         monkeypatch.setattr(cpu, "cpu_has_native_bf16", lambda: native)
         monkeypatch.setattr(cpu, "bf16_speedup", lambda kind: speedup)
-    return setup
+        cpu.bf16_pays_off.cache_clear()
+    yield setup
+    cpu.bf16_pays_off.cache_clear()
 
 
 @pytest.mark.parametrize("native, speedup, expected", [
@@ -22,10 +24,12 @@ def fake_cpu(monkeypatch):
     (True, 1.1, False),   # within noise of float32: keep float32
     (False, 3.0, False),  # not native: never
 ])
-def test_auto_follows_flag_and_measured_speedup(fake_cpu, native, speedup, expected):
+def test_auto_follows_flag_and_measured_speedup(fake_cpu, caplog, native, speedup, expected):
     fake_cpu(native, speedup)
-    assert cpu.bf16_pays_off("matmul") is expected
-    assert cpu.resolve_autocast_bf16("auto", "conv") is expected
+    with caplog.at_level("INFO", logger="src.utils.cpu"):
+        assert cpu.bf16_pays_off("matmul") is expected
+        assert cpu.resolve_autocast_bf16("auto", "conv") is expected
+    assert f"matmul products in {'bfloat16' if expected else 'float32'}" in caplog.text  # the choice is logged
 
 
 def test_explicit_values_are_kept_and_bad_values_named(fake_cpu):

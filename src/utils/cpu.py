@@ -10,11 +10,14 @@ process, at the shapes training uses, and takes bf16 only when it is clearly fas
 from __future__ import annotations
 
 import functools
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 BF16_MIN_SPEEDUP = 1.25  # bf16 must beat float32 by this factor: a clear win, not timing noise
+
+log = logging.getLogger(__name__)
 
 
 @functools.cache
@@ -73,9 +76,20 @@ def bf16_speedup(kind: str, rounds: int = 4) -> float:
     return best[torch.float32] / best[torch.bfloat16]
 
 
+@functools.cache
 def bf16_pays_off(kind: str) -> bool:
-    """True when bf16 is native here AND measured at least ``BF16_MIN_SPEEDUP`` faster for ``kind``."""
-    return cpu_has_native_bf16() and bf16_speedup(kind) >= BF16_MIN_SPEEDUP
+    """True when bf16 is native here AND measured at least ``BF16_MIN_SPEEDUP`` faster for ``kind``.
+
+    The decision is logged once per kind and process.
+    """
+    if not cpu_has_native_bf16():
+        log.info("%s products in float32: this CPU has no native bfloat16", kind)
+        return False
+    speedup = bf16_speedup(kind)
+    chosen = speedup >= BF16_MIN_SPEEDUP
+    log.info("%s products in %s: bfloat16 measured %.2fx the float32 speed (threshold %.2fx)",
+             kind, "bfloat16" if chosen else "float32", speedup, BF16_MIN_SPEEDUP)
+    return chosen
 
 
 def resolve_autocast_bf16(value: bool | str, kind: str) -> bool:
