@@ -2,7 +2,7 @@
 
 Every head ``FieldMLP`` reads ``h_in = [PE(x), f, PE(t)]`` at its first linear and again at each skip
 linear (``W_skip [h_in, h] = W_x h_in + W_h h``). All those input parts are linear in ``h_in``, so
-for a group of heads that share ``h_in`` they are computed by ONE wide product per input block:
+for a group of heads that share ``h_in`` they are computed by ONE wide product per group:
 
     U_g = [f, PE_Lmax(x_g)] @ [W_f_g, W_pe_g]ᵀ + (b_g + W_t_g PE(t))    per group g, one product
 
