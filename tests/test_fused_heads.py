@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from src.fields import CNNTriplaneBackbone, OffsetFlow, SplatFieldNetwork
+from src.fields import CNNTriplaneBackbone, NoBackbone, OffsetFlow, SplatFieldNetwork
 from src.utils.cpu import cpu_has_native_bf16
 
 OUT_KEYS = ("means", "scales", "quats", "opacities", "colors", "canonical_deformed")
@@ -44,7 +44,7 @@ def _run(net: SplatFieldNetwork, fused: bool, x: torch.Tensor, base: torch.Tenso
     return out, grads, xg.grad.clone()
 
 
-@pytest.mark.parametrize("case", ["static", "static_quirks", "dynamic_viewdep", "no_deform"])
+@pytest.mark.parametrize("case", ["static", "static_quirks", "dynamic_viewdep", "no_deform", "no_features"])
 def test_fused_heads_match_reference_float64(case):
     kw = {}
     call = {}
@@ -52,6 +52,8 @@ def test_fused_heads_match_reference_float64(case):
         kw = dict(activation="leaky_relu", output_act_quirk=True, scale_mode="additive_quirk", view_dependent=False)
     if case == "no_deform":
         kw = dict(deform_weight=0.0, view_dependent=False)
+    if case == "no_features":  # the MLP ablation rows: heads on PE(x) alone, an [N, 0] feature
+        kw = dict(backbone=NoBackbone())
     dynamic = case == "dynamic_viewdep"
     if dynamic:
         call = dict(frame_id=2, time=0.5, camera_center=torch.tensor([0.3, -2.0, 1.0], dtype=torch.float64))
