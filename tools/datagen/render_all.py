@@ -1,6 +1,7 @@
 """Regenerate the project's rendered datasets under data/ (run inside .venv-datagen).
 
     .venv-datagen/bin/python tools/datagen/render_all.py [--only static/plant ...] [--out data]
+    .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/totem heldout/teaset --out /tmp/heldout
 
 Use tools/datagen/generate.sh for the full, one-command regeneration.
 """
@@ -27,6 +28,15 @@ import dynamic_scenes  # noqa: E402
 JOBS.update(dynamic_scenes.JOBS)
 JOBS["formats/dtu_neus/trinkets"] = lambda out, limit: static_scenes.render_dtu("trinkets", out, limit)
 
+import heldout_scenes  # noqa: E402
+
+# Held-out scenes: rendered only when named (--only heldout/NAME), never part of the shipped data/.
+HELDOUT_JOBS = {
+    f"heldout/{n}": functools.partial(static_scenes.render_static, n, builders=heldout_scenes.HELDOUT_SCENES,
+                                      group="heldout")
+    for n in heldout_scenes.HELDOUT_SCENES
+}
+
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
@@ -37,9 +47,13 @@ def main(argv=None):
     ap.add_argument("--stats", type=Path, default=None, help="write per-job timings as JSON here")
     args = ap.parse_args(argv)
     if args.list:
-        print("\n".join(JOBS))
+        print("\n".join([*JOBS, *(f"{n}  (held out: only when named)" for n in HELDOUT_JOBS)]))
         return
+    jobs = {**JOBS, **HELDOUT_JOBS}
     names = args.only or list(JOBS)
+    unknown = [n for n in names if n not in jobs]
+    if unknown:
+        ap.error(f"unknown job(s) {unknown}; --list names them")
     stats = []
     for name in names:
         t0 = time.time()
@@ -48,7 +62,7 @@ def main(argv=None):
         if (staging / name).exists():
             shutil.rmtree(staging / name)
         print(f"[datagen] {name} ...", flush=True)
-        st = JOBS[name](staging, args.limit)
+        st = jobs[name](staging, args.limit)
         dst = args.out / name
         if dst.exists():
             shutil.rmtree(dst)

@@ -186,12 +186,15 @@ def camera_sets():
     return {"train": train, "val": val, "test": test}
 
 
-def render_static(name: str, out_root: Path, limit: int | None = None) -> dict:
+def render_static(name: str, out_root: Path, limit: int | None = None, builders: dict | None = None,
+                  group: str = "static") -> dict:
+    """Render scene ``name`` (built by ``builders[name]``, default the shipped ``STATIC_SCENES``) into
+    ``out_root/group/name`` in the NeRF-synthetic layout."""
     scene = C.reset_scene(C.SAMPLES_STATIC)
-    STATIC_SCENES[name](scene)
+    (builders or STATIC_SCENES)[name](scene)
     C.triangulate_all(scene)
     cam = C.make_camera(scene)
-    out = out_root / "static" / name
+    out = out_root / group / name
     n_img = 0
     t0 = time.time()
     for split, poses in camera_sets().items():
