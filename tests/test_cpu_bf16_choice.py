@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 import src.utils.cpu as cpu
@@ -42,7 +44,36 @@ def test_explicit_values_are_kept_and_bad_values_named(fake_cpu):
 
 def test_speedup_is_measured_on_this_machine():
     for kind in ("matmul", "conv"):
-        s = cpu.bf16_speedup(kind)
+        s = cpu.measure_bf16_speedup(kind, rounds=1)
         assert 0.01 < s < 100.0  # a ratio of two positive times of the same work
     with pytest.raises(ValueError, match="kind must be 'matmul' or 'conv'"):
         cpu.bf16_speedup("fft")
+
+
+@pytest.fixture
+def cache_home(tmp_path, monkeypatch):
+    """An empty cache directory and a fresh in-process cache."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    cpu.bf16_speedup.cache_clear()
+    yield tmp_path
+    cpu.bf16_speedup.cache_clear()
+
+
+def test_speedup_is_measured_once_per_machine_then_read_from_disk(cache_home, monkeypatch):
+    calls = []
+    monkeypatch.setattr(cpu, "measure_bf16_speedup", lambda kind: calls.append(kind) or 0.6)
+    assert cpu.bf16_speedup("matmul") == 0.6 and calls == ["matmul"]
+    assert cpu.speedup_cache_path() == cache_home / "splatfields" / "bf16_speedup.json"
+    assert list(json.loads(cpu.speedup_cache_path().read_text()).values()) == [0.6]
+    # a later process (the in-process cache cleared) does not time again: every run agrees
+    cpu.bf16_speedup.cache_clear()
+    monkeypatch.setattr(cpu, "measure_bf16_speedup", lambda kind: pytest.fail("measured again"))
+    assert cpu.bf16_speedup("matmul") == 0.6
+
+
+def test_an_unreadable_cache_is_measured_again_and_rewritten(cache_home, monkeypatch):
+    cpu.speedup_cache_path().parent.mkdir(parents=True)
+    cpu.speedup_cache_path().write_text("{not json")
+    monkeypatch.setattr(cpu, "measure_bf16_speedup", lambda kind: 2.2)
+    assert cpu.bf16_speedup("conv") == 2.2
+    assert list(json.loads(cpu.speedup_cache_path().read_text()).values()) == [2.2]
