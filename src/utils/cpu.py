@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 BF16_MIN_SPEEDUP = 1.25  # bf16 must beat float32 by this factor: a clear win, not timing noise
+KINDS = ("matmul", "conv")  # the products timed: a field head's hidden layer, a tri-plane convolution
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,11 @@ def cpu_has_native_bf16() -> bool:
         return False
     words = set(flags.split())
     return bool(words & {"avx512_bf16", "amx_bf16"})
+
+
+def _check_kind(kind: str) -> None:
+    if kind not in KINDS:
+        raise ValueError(f"bf16_speedup kind must be 'matmul' or 'conv', got {kind!r}")
 
 
 def _best_time(fn: Callable[[], object], reps: int) -> float:
@@ -100,8 +106,7 @@ def measure_bf16_speedup(kind: str, rounds: int = 4) -> float:
     import torch
     import torch.nn.functional as F
 
-    if kind not in ("matmul", "conv"):
-        raise ValueError(f"bf16_speedup kind must be 'matmul' or 'conv', got {kind!r}")
+    _check_kind(kind)
     g = torch.Generator().manual_seed(0)
     work = {}
     for dt in (torch.float32, torch.bfloat16):
@@ -125,8 +130,7 @@ def measure_bf16_speedup(kind: str, rounds: int = 4) -> float:
 def bf16_speedup(kind: str) -> float:
     """This machine's bf16 speed-up for ``kind`` (see ``measure_bf16_speedup``): read from the cache
     file when this machine key has one, else measured once and stored there."""
-    if kind not in ("matmul", "conv"):
-        raise ValueError(f"bf16_speedup kind must be 'matmul' or 'conv', got {kind!r}")
+    _check_kind(kind)
     key = f"{_machine_key()}/{kind}"
     cached = _read_speedups().get(key)
     if isinstance(cached, int | float) and cached > 0:
