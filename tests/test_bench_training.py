@@ -15,7 +15,27 @@ def _tiny_bench(tmp_path, capsys, n_splats: int, *variant: str) -> list[dict]:
     code = main(["--methods", "gs3d,splatfields3d", "--sizes", str(n_splats), "--iters", "1", "--warmup", "0",
                  "--width", "32", "--fps-width", "32", *variant, "--out", str(out)])
     assert code == 0, capsys.readouterr().out
+    assert (tmp_path / "bench.png").stat().st_size > 0  # the split chart beside the JSON
     return json.loads(out.read_text())["rows"]
+
+
+def test_training_chart_redraws_an_earlier_result_and_names_a_bad_file(tmp_path, capsys):
+    split = dict(generator_fwd=10.0, heads_fwd=20.0, rasterizer=5.0, heads_bwd=40.0, generator_bwd=20.0, optimizer=2.0)
+    common = dict(n_splats=1000, n_params=10, ms=dict.fromkeys(PARTS, 1.0), peak_mem_mb=1.0, fps_baked=1.0,
+                  precision="float32", generator_flops=0)
+    rows = [dict(common, method="gs3d", iter_ms=4.0, split={**split, "heads_fwd": 0.5}, flops=0, flop_floor_ms=0.0),
+            dict(common, method="splatfields3d", iter_ms=100.0, split=split, ratio_vs_gs3d=25.0, flops=9e9,
+                 flop_floor_ms=30.0, x_flop_floor=3.3),
+            dict(method="splatfields3d", n_splats=1000, error="killed")]
+    src = tmp_path / "old.json"
+    src.write_text(json.dumps({"rows": rows, "settings": {"peaks": {}}}))
+    assert main(["--from-json", str(src), "--chart", str(tmp_path / "c.png")]) == 0
+    assert (tmp_path / "c.png").stat().st_size > 0 and "x 3DGS" in capsys.readouterr().out
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"rows": [{"method": "gs3d"}]}))
+    with pytest.raises(SystemExit) as exc:
+        main(["--from-json", str(bad)])
+    assert exc.value.code == 2 and f"--from-json {bad}: rows[0] lacks n_splats, n_params, ms" in capsys.readouterr().err
 
 
 def test_training_bench_writes_rows_per_method_and_head_width(tmp_path, capsys):

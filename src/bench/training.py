@@ -1,4 +1,5 @@
-"""``python -m src.bench training [--out FILE.json] [--quick]``: the cost of one training iteration.
+"""``python -m src.bench training [--out FILE.json] [--chart FILE.png] [--quick]``: the cost of one
+training iteration (``--from-json FILE.json``: the table and chart of an earlier run).
 
 For each method (an experiment preset) and splat count, one subprocess (so peak memory is the
 method's own) builds the model from the same configs a run uses, renders one 100 px view per step
@@ -21,7 +22,9 @@ that time, ``x_flop_floor`` = ``iter_ms`` / ``flop_floor_ms``. ``split`` is a se
 loop of the same step: generator forward, heads forward, rasterizer (forward, loss and its backward
 until the splat attributes hold their gradients), heads backward (until the planes hold theirs),
 generator backward, optimiser; ``generator_ms`` = generator forward + backward from that split.
-The default output is ``sweeps/results/bench/training.json``.
+The default output is ``sweeps/results/bench/training.json`` and, beside it, ``training.png``: each
+row's split as a stacked bar, labelled with its × 3DGS and × floor, the floor and the 8× 3DGS target
+marked (``src.bench.training_chart``).
 """
 
 from __future__ import annotations
@@ -43,6 +46,9 @@ SIZES = (10_000, 50_000)
 PARTS = ("field", "rasterizer", "backward", "optimizer")
 SPLIT = ("generator_fwd", "heads_fwd", "rasterizer", "heads_bwd", "generator_bwd", "optimizer")
 DEFAULT_OUT = Path("sweeps/results/bench/training.json")
+# keys of a finished row that the table and the chart read (checked by --from-json)
+ROW_KEYS = ("method", "n_splats", "n_params", "ms", "iter_ms", "peak_mem_mb", "fps_baked", "flops", "precision",
+            "flop_floor_ms", "split", "generator_flops")
 
 
 def _rss_peak_mb() -> float:
@@ -365,9 +371,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plane-blocks", default="",
                     help="also time the methods with a CNN tri-plane at these field_budget.triplane_up_blocks "
                          "values, e.g. 2,3 (40 and 80 px planes; the configured value is always timed)")
+    ap.add_argument("--chart", type=Path, default=None,
+                    help="draw each row's split against its FLOP floor into this PNG (default: --out with .png)")
+    ap.add_argument("--from-json", type=Path, default=None, metavar="FILE",
+                    help="do not run: print the table and draw the chart of this earlier --out file")
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
     ap.add_argument("--override-single", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.from_json is not None:
+        return _redraw(ap, args)
     check_arguments(ap, args)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
@@ -406,6 +418,32 @@ def main(argv: list[str] | None = None) -> int:
         from src.utils.record import write_json
 
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        write_json(args.out, {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}})
+        result = {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}}
+        write_json(args.out, result)
         print(f"wrote {args.out}")
+        _write_chart(result, args.chart or args.out.with_suffix(".png"))
     return 0 if all("error" not in r for r in rows) else 1
+
+
+def _redraw(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """``--from-json FILE``: the table and chart of an earlier result, nothing run."""
+    try:
+        result = json.loads(args.from_json.read_text())
+        rows = result["rows"]
+        for i, r in enumerate(rows):
+            missing = [k for k in (("method", "n_splats") if "error" in r else ROW_KEYS) if k not in r]
+            if missing:
+                ap.error(f"--from-json {args.from_json}: rows[{i}] lacks {', '.join(missing)}")
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        ap.error(f"--from-json {args.from_json}: not a training benchmark result ({err})")
+    if not rows:
+        ap.error(f"--from-json {args.from_json}: no rows")
+    print_table(rows)
+    _write_chart(result, args.chart or args.from_json.with_suffix(".png"))
+    return 0
+
+
+def _write_chart(result: dict, path: Path) -> None:
+    from src.bench.training_chart import make_training_chart
+
+    print(f"wrote {make_training_chart(result, path)}")
