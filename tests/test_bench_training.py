@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
-from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main
+from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main, output_path
 
 
 def _tiny_bench(tmp_path, capsys, n_splats: int, *variant: str) -> list[dict]:
@@ -125,3 +126,9 @@ def test_fused_linear_relu_flops_match_a_hand_count(with_r):
     r = torch.randn(n, d_out, requires_grad=True) if with_r else None
     counted = count_flops(lambda: linear_relu(h, w, b, r).sum().backward())
     assert counted == {"total": 3 * 2 * n * d_in * d_out, "conv": 0, "matmul": 3 * 2 * n * d_in * d_out}
+
+
+def test_a_quick_run_does_not_replace_the_kept_result():
+    assert output_path(None, quick=False) == DEFAULT_OUT
+    assert output_path(None, quick=True) is None  # --quick prints only
+    assert output_path(Path("x.json"), quick=True) == Path("x.json")

@@ -1,5 +1,6 @@
 """``python -m src.bench training [--out FILE.json] [--chart FILE.png] [--quick]``: the cost of one
-training iteration (``--from-json FILE.json``: the table and chart of an earlier run).
+training iteration (``--from-json FILE.json``: the table and chart of an earlier run; ``--quick``
+prints only, unless ``--out`` is given).
 
 For each method (an experiment preset) and splat count, one subprocess (so peak memory is the
 method's own) builds the model from the same configs a run uses, renders one 100 px view per step
@@ -356,7 +357,8 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m src.bench training", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"write the rows as JSON here ({DEFAULT_OUT})")
+    ap.add_argument("--out", type=Path, default=None,
+                    help=f"write the rows as JSON here (default {DEFAULT_OUT}; --quick writes no file unless given)")
     ap.add_argument("--quick", action="store_true", help="10k splats, gs3d and splatfields3d_mip (the main job), 3 its")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--sizes", default=",".join(map(str, SIZES)))
@@ -378,6 +380,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
     ap.add_argument("--override-single", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    args.out = output_path(args.out, args.quick)
     if args.from_json is not None:
         return _redraw(ap, args)
     check_arguments(ap, args)
@@ -423,6 +426,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.out}")
         _write_chart(result, args.chart or args.out.with_suffix(".png"))
     return 0 if all("error" not in r for r in rows) else 1
+
+
+def output_path(out: Path | None, quick: bool) -> Path | None:
+    """Where the rows go: ``out`` if given, else the kept result ``DEFAULT_OUT`` for a full run and
+    nothing for ``--quick`` (a 3-iteration check must not replace the kept benchmark)."""
+    if out is not None:
+        return out
+    return None if quick else DEFAULT_OUT
 
 
 def _redraw(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
