@@ -12,10 +12,11 @@ and keeps the best throughput of each kind (GFLOP/s): the peaks that ``floor_ms`
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import torch
+
+from src.utils.cpu import best_time
 
 CONV_OPS = ("convolution", "convolution_backward", "_convolution")
 MATMUL_OPS = ("mm", "addmm", "bmm", "baddbmm", "_linear_pointwise", "_scaled_dot_product_flash_attention",
@@ -76,15 +77,8 @@ def count_flops(fn: Callable[[], object]) -> dict[str, int]:
     return {"total": conv + matmul, "conv": conv, "matmul": matmul}
 
 
-def _best_gflops(fn: Callable[[], object], flops: float, reps: int, warmup: int = 2) -> float:
-    for _ in range(warmup):
-        fn()
-    best = float("inf")
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return flops / best / 1e9
+def _best_gflops(fn: Callable[[], object], flops: float, reps: int) -> float:
+    return flops / best_time(fn, reps, warmup=2) / 1e9
 
 
 @torch.no_grad()

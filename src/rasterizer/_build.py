@@ -42,6 +42,7 @@ from typing import Any
 
 import torch
 
+from src.utils.cpu import user_cache_dir
 from src.utils.runlock import exclusive
 
 CSRC = Path(__file__).resolve().parent / "csrc"
@@ -89,9 +90,7 @@ def cache_root() -> Path:
     env = os.environ.get("SPLATFIELDS_EXT_DIR")
     if env:
         return Path(env).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME")
-    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
-    return base / "splatfields" / "ext"
+    return user_cache_dir() / "ext"
 
 
 def projection_compile_flags() -> list[str]:

@@ -43,9 +43,10 @@ def _check_kind(kind: str) -> None:
         raise ValueError(f"bf16_speedup kind must be 'matmul' or 'conv', got {kind!r}")
 
 
-def _best_time(fn: Callable[[], object], reps: int) -> float:
-    """Fastest of ``reps`` timed calls of ``fn`` after one warm-up call (seconds)."""
-    fn()
+def best_time(fn: Callable[[], object], reps: int, warmup: int = 1) -> float:
+    """Fastest of ``reps`` timed calls of ``fn`` after ``warmup`` untimed calls (seconds)."""
+    for _ in range(warmup):
+        fn()
     best = float("inf")
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -68,11 +69,16 @@ def _machine_key() -> str:
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def speedup_cache_path() -> Path:
-    """``${XDG_CACHE_HOME:-~/.cache}/splatfields/bf16_speedup.json``: the measured speed-ups by machine key."""
+def user_cache_dir() -> Path:
+    """``${XDG_CACHE_HOME:-~/.cache}/splatfields``: the project's per-user cache (compiled kernels, timings)."""
     xdg = os.environ.get("XDG_CACHE_HOME")
     base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
-    return base / "splatfields" / "bf16_speedup.json"
+    return base / "splatfields"
+
+
+def speedup_cache_path() -> Path:
+    """``user_cache_dir() / "bf16_speedup.json"``: the measured speed-ups by machine key."""
+    return user_cache_dir() / "bf16_speedup.json"
 
 
 def _read_speedups() -> dict:
@@ -122,7 +128,7 @@ def measure_bf16_speedup(kind: str, rounds: int = 4) -> float:
     with torch.no_grad():
         for _ in range(rounds):
             for dt, fn in work.items():
-                best[dt] = min(best[dt], _best_time(fn, 2))
+                best[dt] = min(best[dt], best_time(fn, 2))
     return best[torch.float32] / best[torch.bfloat16]
 
 
