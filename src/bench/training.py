@@ -10,7 +10,9 @@ splat count stays equal across methods. It also bakes the model and times render
 times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_ms``).
 ``--head-widths`` and ``--plane-blocks`` repeat the methods with neural fields at other
 ``field_budget.head_width`` / ``field_budget.triplane_up_blocks`` values (the sizes a capacity search
-may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run.
+may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run; ``--compile
+BACKEND`` repeats the methods with networks under ``trainer.compile=BACKEND`` (``first_step_ms``, the
+first warm-up step, holds the compilation).
 Timings are medians over the timed iterations; compare them as ratios within one run.
 
 The floor: each row counts the FLOPs of its networks per iteration (forward + backward of the splat
@@ -82,7 +84,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     from src.data.base import View
     from src.strategy.base import NoDensification
     from src.trainer.guard import DivergenceGuard
-    from src.trainer.trainer import Trainer
+    from src.trainer.trainer import Trainer, compile_backend
     from src.utils.instantiate import build
 
     conf = Path(__file__).resolve().parents[2] / "conf"
@@ -110,11 +112,17 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
         cam = replace(cam, frame_id=BENCH_FRAMES // 2, time=0.5)
     view = View(camera=cam, image=target, mask=(target[..., 0] > 0.5).float(), image_id=0)
     model.bind(SimpleNamespace(train=[view]))  # as the trainer does: the 3D filters read the training cameras
+    backend = OmegaConf.select(cfg, "trainer.compile", default=False)
+    Trainer(compile=backend).compile_networks(model)  # trainer.compile, as in training
     guard = DivergenceGuard(check_grads=False, collapse_psnr=-math.inf)
     times: dict[str, list[float]] = {k: [] for k in PARTS}
+    first_step_ms = None
     for it in range(warmup + iters):
+        t0 = time.perf_counter()
         step = Trainer.train_step(model, [view], rasterizer, loss_fn, optimizer, NoDensification(), guard, it, g,
                                   torch.ones(3))
+        if it == 0:
+            first_step_ms = 1000 * (time.perf_counter() - t0)
         if it >= warmup:
             for k in PARTS:
                 times[k].append(1000 * step["timing"][k])
@@ -124,6 +132,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
            "plane_blocks": _plane_blocks(cfg),
            "plane_px": getattr(model.network.backbone, "resolution", None) if has_field(cfg) else None,
            "overrides": list(overrides), "n_splats": model.n_splats,
+           "compile": compile_backend(backend), "has_network": bool(model.networks()), "first_step_ms": first_step_ms,
            "n_params": model.n_params(), "rasterizer": getattr(rasterizer, "name", type(rasterizer).__name__),
            "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals)}
     row["backbone_ms"] = _backbone_ms(model, iters) if has_field(cfg) else None
@@ -282,13 +291,15 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequ
 
 
 def _label(r: dict) -> str:
-    """``method width planes`` columns of a row (planes: the tri-plane side in px; '-' without one)."""
+    """``method width planes`` columns of a row (planes: the tri-plane side in px; '-' without one;
+    ``+c`` after the method: its networks compiled)."""
     planes = f"{r['plane_px']}px" if r.get("plane_px") is not None else "-"
-    return f"{r['method']:<17} {r.get('head_width') or '-':>5} {planes:>6}"
+    name = r["method"] + ("+c" if r.get("compile") else "")
+    return f"{name:<19} {r.get('head_width') or '-':>5} {planes:>6}"
 
 
 def print_table(rows: list[dict]) -> None:
-    hdr = f"{'method':<17} {'width':>5} {'planes':>6} {'splats':>7} {'params':>9} "
+    hdr = f"{'method':<19} {'width':>5} {'planes':>6} {'splats':>7} {'params':>9} "
     hdr += " ".join(f"{k:>10}" for k in PARTS)
     hdr += f" {'iter ms':>8} {'x 3DGS':>7} {'CNN ms':>7} {'peak MB':>8} {'FPS@200':>8}"
     hdr += f" {'GFLOP':>7} {'prec':>7} {'floor ms':>8} {'x floor':>7}"
@@ -296,7 +307,7 @@ def print_table(rows: list[dict]) -> None:
     print("-" * len(hdr))
     for r in rows:
         if "error" in r:
-            print(f"{r['method']:<17} {' '.join(r.get('overrides', []))} {r['n_splats']:>7} failed: {r['error']}")
+            print(f"{r['method']:<19} {' '.join(r.get('overrides', []))} {r['n_splats']:>7} failed: {r['error']}")
             continue
         parts = " ".join(f"{r['ms'][k]:>10.1f}" for k in PARTS)
         ratio = f"{r['ratio_vs_gs3d']:.2f}" if r.get("ratio_vs_gs3d") else "-"
@@ -307,7 +318,7 @@ def print_table(rows: list[dict]) -> None:
               f"{r['peak_mem_mb']:>8.0f} {r['fps_baked']:>8.1f} {r['flops'] / 1e9:>7.2f} {r['precision']:>7} "
               f"{r['flop_floor_ms']:>8.1f} {xf:>7}")
     print()
-    hdr = f"{'split (ms)':<17} {'width':>5} {'planes':>6} {'splats':>7} " + " ".join(f"{k:>13}" for k in SPLIT)
+    hdr = f"{'split (ms)':<19} {'width':>5} {'planes':>6} {'splats':>7} " + " ".join(f"{k:>13}" for k in SPLIT)
     hdr += f" {'generator':>9} {'gen GFLOP':>9}"
     print(hdr)
     print("-" * len(hdr))
@@ -350,6 +361,13 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
     if blocks is None or any(b < 1 for b in blocks):
         ap.error(f"--plane-blocks {args.plane_blocks!r}: expected comma-separated positive up-sampling block "
                  "counts, e.g. 2,3 (2: 40 px planes, 3: 80 px)")
+    if args.compile:
+        from src.trainer.trainer import compile_backend
+
+        try:
+            compile_backend(True if args.compile == "true" else args.compile)
+        except ValueError as exc:
+            ap.error(f"--compile {args.compile!r}: {exc}")
     if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
         ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
 
@@ -373,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--plane-blocks", default="",
                     help="also time the methods with a CNN tri-plane at these field_budget.triplane_up_blocks "
                          "values, e.g. 2,3 (40 and 80 px planes; the configured value is always timed)")
+    ap.add_argument("--compile", default="", metavar="BACKEND",
+                    help="also time the methods with networks under trainer.compile=BACKEND (true = inductor)")
     ap.add_argument("--chart", type=Path, default=None,
                     help="draw each row's split against its FLOP floor into this PNG (default: --out with .png)")
     ap.add_argument("--from-json", type=Path, default=None, metavar="FILE",
@@ -408,6 +428,9 @@ def main(argv: list[str] | None = None) -> int:
         rows += [_run_isolated(r["method"], r["n_splats"], args, [f"{field}={v}"], {key: v})
                  for v in (int(x) for x in values.split(",") if x) for r in configured
                  if r.get(key) not in (None, v)]
+    if args.compile:
+        rows += [_run_isolated(r["method"], r["n_splats"], args, [f"trainer.compile={args.compile}"],
+                               {"compile": args.compile}) for r in configured if r.get("has_network")]
     for r in rows:
         base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
                     None)

@@ -43,6 +43,10 @@ class SplatModel(nn.Module, ABC):
         """A network-free splat set equivalent to this model at ``time`` (view-independent colours)."""
         raise NotImplementedError(f"{type(self).__name__} cannot be baked")
 
+    def networks(self) -> list[nn.Module]:
+        """The neural networks evaluated in every step (what ``trainer.compile`` compiles); none by default."""
+        return []
+
     def on_step(self, iteration: int) -> None:
         """Called at the start of every training iteration (e.g. to raise the SH degree)."""
 

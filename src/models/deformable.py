@@ -53,6 +53,10 @@ class DeformableGaussianModel(GaussianSplatModel):
     def param_groups(self) -> list[dict]:
         return [*super().param_groups(), {"name": "deform", "params": list(self.deform.parameters())}]
 
+    def networks(self) -> list[torch.nn.Module]:
+        """The deformation MLP."""
+        return [self.deform]
+
     def on_step(self, iteration: int) -> None:
         super().on_step(iteration)
         self.iteration = iteration

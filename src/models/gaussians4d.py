@@ -75,6 +75,10 @@ class HexPlaneGaussianModel(GaussianSplatModel):
         return [*super().param_groups(), {"name": "grid", "params": list(self.encoder.parameters())},
                 {"name": "deform", "params": list(self.decoder.parameters())}]
 
+    def networks(self) -> list[torch.nn.Module]:
+        """The HexPlane encoder and the deformation decoder."""
+        return [self.encoder, self.decoder]
+
     def on_step(self, iteration: int) -> None:
         super().on_step(iteration)
         self.iteration = iteration

@@ -92,6 +92,10 @@ class SplatFieldsModel(SplatModel):
     def param_groups(self) -> list[dict]:
         return [{"name": "network", "params": [p for p in self.network.parameters() if p.requires_grad]}]
 
+    def networks(self) -> list[torch.nn.Module]:
+        """The field network (backbone, heads and flow): one module, compiled whole by ``trainer.compile``."""
+        return [self.network]
+
     def on_step(self, iteration: int) -> None:
         self.iteration = iteration
 

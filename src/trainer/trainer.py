@@ -52,6 +52,22 @@ def _mse_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return math.inf if mse == 0 else -10 * math.log10(mse)
 
 
+def compile_backend(value: bool | str | None) -> str | None:
+    """The ``torch.compile`` backend named by ``trainer.compile``: None (false), "inductor" (true) or the name.
+
+    Raises:
+        ValueError: naming ``trainer.compile`` and the backends torch knows, for an unknown name.
+    """
+    if value is None or value is False:
+        return None
+    if value is True:
+        return "inductor"
+    known = torch.compiler.list_backends(exclude_tags=())
+    if not isinstance(value, str) or value not in known:
+        raise ValueError(f"trainer.compile: expected false, true or one of {known}, got {value!r}")
+    return value
+
+
 class Trainer:
     """Trains a :class:`SplatModel` on a :class:`Scene`.
 
@@ -67,11 +83,14 @@ class Trainer:
         progress: show a tqdm progress bar.
         tensorboard: write TensorBoard scalars and images under ``<run>/tb``.
         guard: divergence-guard settings (see :class:`DivergenceGuard`).
+        compile: ``torch.compile`` the forward of the model's networks (:meth:`SplatModel.networks`) before
+            training: false (eager), true (the inductor backend) or a backend name (e.g. ``"eager"``,
+            ``"aot_eager"``). State dicts are unchanged, so checkpoints load either way.
     """
 
     def __init__(self, iterations: int = 30_000, views_per_step: int = 1, log_every: int = 50,
                  image_every: int = 0, ckpt_every: int = 0, resume: bool = True, progress: bool = True,
-                 tensorboard: bool = True, guard: dict | None = None) -> None:
+                 tensorboard: bool = True, guard: dict | None = None, compile: bool | str = False) -> None:
         self.iterations = iterations
         self.views_per_step = views_per_step
         self.log_every = log_every
@@ -81,6 +100,20 @@ class Trainer:
         self.progress = progress
         self.tensorboard = tensorboard
         self.guard_cfg = dict(guard or {})
+        self.compile = compile_backend(compile)
+
+    # -- torch.compile -----------------------------------------------------------------------
+    def compile_networks(self, model: SplatModel) -> list[str]:
+        """Compile the forward of every network of ``model`` in place (``trainer.compile``); their class names."""
+        if self.compile is None:
+            return []
+        names = []
+        for net in model.networks():
+            net.compile(backend=self.compile, dynamic=True)  # nn.Module.compile: the state dict keeps its keys
+            names.append(type(net).__name__)
+        what = ", ".join(names) or f"nothing ({type(model).__name__} has no network)"
+        log.info("trainer.compile=%s: compiled %s", self.compile, what)
+        return names
 
     # -- view sampling -----------------------------------------------------------------------
     @staticmethod
@@ -208,6 +241,7 @@ class Trainer:
         guard = DivergenceGuard(**self.guard_cfg)
         optimizer = make_optimizer(model)
         model.bind(scene)
+        self.compile_networks(model)
         strategy.bind(scene, rasterizer)
         start = 0
         prev_train_s = 0.0
