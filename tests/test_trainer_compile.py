@@ -64,8 +64,9 @@ def _steps(model, compile_to: str | None, n: int = 3) -> list[float]:
     return losses
 
 
-def test_compiled_field_network_trains_as_the_eager_one():
-    """Dynamo traces the field network (fused heads, oneDNN linear + ReLU) and the steps match eager."""
+@pytest.mark.parametrize("backend", ["eager", "inductor"])
+def test_compiled_field_network_trains_as_the_eager_one(backend):
+    """The field network (fused heads, linear + ReLU layers) compiles, and its steps match eager ones."""
     cfg = _cfg(["+experiment=splatfields3d", "field_budget.triplane_up_blocks=1", "field_budget.head_width=32"])
     pts = (torch.rand(150, 3, generator=torch.Generator().manual_seed(1)) * 2 - 1) * 0.4
     eager = build(cfg.model, init=pts, n_frames=1)
@@ -75,8 +76,8 @@ def test_compiled_field_network_trains_as_the_eager_one():
                 p.normal_(0, 1e-2)
     compiled = copy.deepcopy(eager)
     ref = _steps(eager, None)
-    got = _steps(compiled, "eager")
+    got = _steps(compiled, backend)
     assert compiled.network._compiled_call_impl is not None
     assert set(compiled.state_dict()) == set(eager.state_dict())  # checkpoints load either way
-    assert got == pytest.approx(ref, rel=1e-5, abs=1e-7)
+    assert got == pytest.approx(ref, rel=1e-4, abs=1e-6)  # inductor reorders float32 sums
     assert ref[-1] != ref[0]  # the steps trained

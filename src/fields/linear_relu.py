@@ -19,6 +19,7 @@ the backward against autograd in float64 and the oneDNN forward against the refe
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from src.utils.cpu import cpu_has_native_bf16
@@ -75,5 +76,10 @@ def linear_relu(h: Tensor, w: Tensor, b: Tensor | None = None, r: Tensor | None 
 
     Runs in h's dtype (W, b, r cast to it; their gradients come back in their own dtypes).
     ``fast``: the oneDNN fused forward where it applies (CPU float32/bf16); False: addmm + ReLU.
+    Under ``torch.compile`` (``trainer.compile``) it is autograd's ``relu(linear(h, W, b) + r)``, which the
+    compiler fuses itself (inductor cannot lower oneDNN's fused linear on weights that train).
     """
+    if torch.compiler.is_compiling():
+        y = F.linear(h, w.to(h.dtype), None if b is None else b.to(h.dtype))  # [N, out]
+        return F.relu(y if r is None else y + r.to(h.dtype))
     return _LinearReLU.apply(h, w, b, r, fast)
