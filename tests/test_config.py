@@ -116,6 +116,11 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     assert plain.stage1.model._target_.endswith(".GaussianSplatModel")
     assert mip.rasterizer.antialiased and not plain.rasterizer.antialiased
     assert mip.model.filter_3d == 0.2 and plain.model.filter_3d == 0.0
+    assert mip.model.network.backbone.n_up_blocks == 2 and plain.model.network.backbone.n_up_blocks == 3  # 40 / 80 px
+    paper_mip = _compose(["protocol=two_stage_mip", "scale=paper"])
+    assert paper_mip.model.network.backbone.n_up_blocks == 4  # scale=paper keeps B.2's 160 px planes
+    cli = _compose(["field_budget.triplane_up_blocks=3"])  # a command-line override wins
+    assert cli.model.network.backbone.n_up_blocks == 3
     assert mip.init.run_dir.endswith("/mip_views4_it1500_seed0")
     assert plain.init.run_dir.endswith("/views4_it1500_seed0") and "mip_" not in plain.init.run_dir
     for key in ("strategy", "init", "optim", "trainer", "loss"):
