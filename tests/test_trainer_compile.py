@@ -17,8 +17,9 @@ from src.data.base import View
 from src.rasterizer.torch_ref import TorchRefRasterizer
 from src.strategy.base import NoDensification
 from src.trainer.guard import DivergenceGuard
-from src.trainer.trainer import Trainer, compile_backend
+from src.trainer.trainer import Trainer
 from src.utils.instantiate import build
+from src.utils.validate import ConfigValueError, compile_backend, validate_run_config
 from tests.conftest import random_camera
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
@@ -36,6 +37,12 @@ def test_backend_names():
     assert compile_backend("eager") == "eager"
     with pytest.raises(ValueError, match=r"trainer\.compile"):
         compile_backend("no_such_backend")
+
+
+def test_an_unknown_backend_is_refused_before_the_run():
+    with pytest.raises(ConfigValueError, match=r"trainer\.compile='nope'"):
+        validate_run_config(_cfg(["trainer.compile=nope"]))
+    validate_run_config(_cfg(["trainer.compile=eager"]))
 
 
 def test_config_default_is_eager_and_builds():

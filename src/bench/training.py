@@ -84,8 +84,9 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     from src.data.base import View
     from src.strategy.base import NoDensification
     from src.trainer.guard import DivergenceGuard
-    from src.trainer.trainer import Trainer, compile_backend
+    from src.trainer.trainer import Trainer
     from src.utils.instantiate import build
+    from src.utils.validate import compile_backend
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
@@ -362,7 +363,7 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
         ap.error(f"--plane-blocks {args.plane_blocks!r}: expected comma-separated positive up-sampling block "
                  "counts, e.g. 2,3 (2: 40 px planes, 3: 80 px)")
     if args.compile:
-        from src.trainer.trainer import compile_backend
+        from src.utils.validate import compile_backend
 
         try:
             compile_backend(True if args.compile == "true" else args.compile)

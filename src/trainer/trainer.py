@@ -21,6 +21,7 @@ from src.rasterizer.base import Rasterizer
 from src.strategy.base import Strategy
 from src.trainer.guard import DivergenceError, DivergenceGuard
 from src.utils.record import atomic_write_bytes
+from src.utils.validate import compile_backend
 
 log = logging.getLogger(__name__)
 
@@ -50,22 +51,6 @@ def set_numpy_rng_state(state: dict) -> None:
 def _mse_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.detach() - b) ** 2).mean())
     return math.inf if mse == 0 else -10 * math.log10(mse)
-
-
-def compile_backend(value: bool | str | None) -> str | None:
-    """The ``torch.compile`` backend named by ``trainer.compile``: None (false), "inductor" (true) or the name.
-
-    Raises:
-        ValueError: naming ``trainer.compile`` and the backends torch knows, for an unknown name.
-    """
-    if value is None or value is False:
-        return None
-    if value is True:
-        return "inductor"
-    known = torch.compiler.list_backends(exclude_tags=())
-    if not isinstance(value, str) or value not in known:
-        raise ValueError(f"trainer.compile: expected false, true or one of {known}, got {value!r}")
-    return value
 
 
 class Trainer:

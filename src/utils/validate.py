@@ -44,13 +44,32 @@ def _require(cfg: DictConfig, key: str, integer: bool = False, allow_null: bool 
         raise ConfigValueError(f"{key}={value!r}: expected {what}")
 
 
+def compile_backend(value: bool | str | None) -> str | None:
+    """The ``torch.compile`` backend named by ``trainer.compile``: None (false), "inductor" (true) or the name.
+
+    Raises:
+        ConfigValueError: naming ``trainer.compile`` and the backends torch knows, for an unknown name.
+    """
+    if value is None or value is False:
+        return None
+    if value is True:
+        return "inductor"
+    import torch
+
+    known = torch.compiler.list_backends(exclude_tags=())
+    if not isinstance(value, str) or value not in known:
+        raise ConfigValueError(f"trainer.compile={value!r}: expected false, true or one of {known}")
+    return value
+
+
 def validate_run_config(cfg: DictConfig) -> None:
     """Raise :class:`ConfigValueError` for values no run can use (checked before the run starts).
 
     Iterations > 0; every learning rate (``optim.lr.<group>.init`` / ``final``) > 0; splat budgets
     (``init.n_points``, ``strategy.max_splats``, ``schedule.*``) > 0; ``dataset.n_views`` >= 1;
-    ``dataset.downscale`` > 0; ``trainer.views_per_step`` >= 1.
+    ``dataset.downscale`` > 0; ``trainer.views_per_step`` >= 1; ``trainer.compile`` a known backend.
     """
+    compile_backend(OmegaConf.select(cfg, "trainer.compile", default=None))
     _require(cfg, "trainer.iterations", integer=True, allow_null=False)
     _require(cfg, "trainer.views_per_step", integer=True)
     _require(cfg, "trainer.log_every", integer=True)
