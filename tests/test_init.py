@@ -39,6 +39,20 @@ def test_from_run_reads_the_ply_filters_to_the_hull_and_subsamples(scene, tmp_pa
     assert inside_hull(pts.double(), [v.camera for v in scene.train], [v.mask for v in scene.train]).all()
 
 
+def test_from_run_select_opacity_keeps_the_most_opaque_first_stage_splats(scene, tmp_path):
+    g = torch.Generator().manual_seed(2)
+    means = HullInit(n_points=300)(scene, g)
+    n = means.shape[0]
+    opacity = torch.linspace(0.01, 0.99, n)[torch.randperm(n, generator=g)]  # distinct, shuffled
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    write_ply(tmp_path / "splats.ply", Splats(means, torch.full((n, 3), 0.01), quats, opacity, torch.rand(n, 3)))
+    pts = FromRunInit(run_dir=str(tmp_path), n_points=100, select="opacity")(scene, g)
+    kept = torch.cdist(pts.double(), means.double()).argmin(1)           # [100] indices into the file
+    assert pts.shape == (100, 3) and set(kept.tolist()) == set(opacity.argsort(descending=True)[:100].tolist())
+    with pytest.raises(ValueError, match=r"init\.select"):
+        FromRunInit(run_dir=str(tmp_path), select="largest")
+
+
 def test_from_run_without_artefact_names_the_command(scene, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"python -m src.run \+experiment=gs3d"):
         FromRunInit(run_dir=str(tmp_path / "missing"))(scene, torch.Generator())

@@ -93,12 +93,20 @@ class FromRunInit(Initialiser):
         run_dir: directory of the finished 3DGS run.
         n_points: maximum number of points kept.
         hull_filter: drop points outside the visual hull of the training masks.
+        select: how ``n_points`` are chosen from more: ``random`` (uniform, the reference) or
+            ``opacity`` (the most opaque splats of the first stage, sigmoid opacity, ties by index).
     """
 
-    def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True) -> None:
+    SELECT = ("random", "opacity")
+
+    def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True,
+                 select: str = "random") -> None:
+        if select not in self.SELECT:
+            raise ValueError(f"init.select must be one of {', '.join(self.SELECT)}, got {select!r}")
         self.run_dir = run_dir
         self.n_points = n_points
         self.hull_filter = hull_filter
+        self.select = select
 
     def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
         from src.data.hull import inside_hull
@@ -114,14 +122,20 @@ class FromRunInit(Initialiser):
                 f"hydra.run.dir={self.run_dir}` (or +experiment=gs3d_stage1 with the same dataset and seed; "
                 "+experiment=splatfields3d_2stage trains it itself unless stage1.auto=false)"
             )
-        pts = read_ply(path).means.float()
+        splats = read_ply(path).splats
+        pts = splats.means.float()                              # [N, 3]
+        opacity = splats.opacities.reshape(-1).float()          # [N], in (0, 1)
         if self.hull_filter and any(v.mask is None for v in scene.train):
             log.warning("init.hull_filter: the training views of %s have no masks; the first stage's centres "
                         "are kept unfiltered", scene.name)
         elif self.hull_filter:
             keep = inside_hull(pts.double(), [v.camera.to("cpu") for v in scene.train],
                                [v.mask.cpu() for v in scene.train])
-            pts = pts[keep]
+            pts, opacity = pts[keep], opacity[keep]
         if pts.shape[0] > self.n_points:
-            pts = pts[torch.randperm(pts.shape[0], generator=generator)[: self.n_points]]
+            if self.select == "opacity":
+                order = torch.sort(opacity, descending=True, stable=True).indices
+                pts = pts[order[: self.n_points]]
+            else:
+                pts = pts[torch.randperm(pts.shape[0], generator=generator)[: self.n_points]]
         return pts
