@@ -46,6 +46,19 @@ class View:
     mask: Tensor | None
     image_id: int
 
+    def on_background(self, background: Tensor, stored: Tensor) -> View:
+        """This view composited on ``background`` [3] instead of the ``stored`` [3] colour it was read on.
+
+        Exact for images composited as ``rgb * alpha + stored * (1 - alpha)`` with ``alpha`` = ``mask``
+        (every masked reader here): ``image + (1 - mask) * (background - stored)``. Needs a mask.
+        """
+        if self.mask is None:
+            raise ValueError(f"view {self.image_id} ({self.camera.name}) has no mask: "
+                             "it cannot be put on another background")
+        shift = (background - stored).to(self.image).reshape(1, 1, 3)
+        image = self.image + (1 - self.mask)[..., None] * shift       # [H, W, 3]
+        return View(camera=self.camera, image=image, mask=self.mask, image_id=self.image_id)
+
 
 @dataclass
 class Scene:

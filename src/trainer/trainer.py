@@ -71,11 +71,15 @@ class Trainer:
         compile: ``torch.compile`` the forward of the model's networks (:meth:`SplatModel.networks`) before
             training: false (eager), true (the inductor backend) or a backend name (e.g. ``"eager"``,
             ``"aot_eager"``). State dicts are unchanged, so checkpoints load either way.
+        random_background: train every step on a uniformly random background colour (the training
+            images re-composited with their masks, the renders on the same colour), as the 3DGS code's
+            ``--random_background``; evaluation keeps the scene's background. Needs masked views.
     """
 
     def __init__(self, iterations: int = 30_000, views_per_step: int = 1, log_every: int = 50,
                  image_every: int = 0, ckpt_every: int = 0, resume: bool = True, progress: bool = True,
-                 tensorboard: bool = True, guard: dict | None = None, compile: bool | str = False) -> None:
+                 tensorboard: bool = True, guard: dict | None = None, compile: bool | str = False,
+                 random_background: bool = False) -> None:
         self.iterations = iterations
         self.views_per_step = views_per_step
         self.log_every = log_every
@@ -86,6 +90,7 @@ class Trainer:
         self.tensorboard = tensorboard
         self.guard_cfg = dict(guard or {})
         self.compile = compile_backend(compile)
+        self.random_background = bool(random_background)
 
     # -- torch.compile -----------------------------------------------------------------------
     def compile_networks(self, model: SplatModel) -> list[str]:
@@ -223,6 +228,9 @@ class Trainer:
         run_dir = Path(run_dir)
         ckpt_path = run_dir / "checkpoint.pt"
         rng = random.Random(seed)
+        if self.random_background and any(v.mask is None for v in scene.train):
+            raise ValueError(f"trainer.random_background=true needs masked training views; "
+                             f"those of {scene.name} have none")
         guard = DivergenceGuard(**self.guard_cfg)
         optimizer = make_optimizer(model)
         model.bind(scene)
@@ -275,8 +283,12 @@ class Trainer:
         groups = self.views_by_frame(scene)
         for it in bar:
             views = strategy.step_views(model, self.sample_views(groups, rng), it, generator)
+            background = scene.background
+            if self.random_background:
+                background = torch.rand(3, generator=generator).to(scene.background)
+                views = [v.on_background(background, scene.background) for v in views]
             step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
-                                   scene.background)
+                                   background)
             terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
             psnr_val = step["psnr"]
             if it > start:  # the first iteration includes one-off costs (JIT build, caches)
