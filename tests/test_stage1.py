@@ -69,12 +69,13 @@ def test_first_stage_config_mirrors_the_gs3d_experiment():
     from src.init.stage1 import first_stage_config
 
     with initialize_config_module("conf", version_base="1.3"):
-        sf = compose("config", overrides=["+experiment=splatfields3d_2stage"])
         gs = compose("config", overrides=["+experiment=gs3d_stage1"])
-    c1 = first_stage_config(sf)
-    for key in ("model", "optim", "strategy", "init", "loss", "method", "trainer"):
-        mine, theirs = (OmegaConf.to_container(OmegaConf.select(c, key), resolve=True) if key != "method"
-                        else c[key] for c in (c1, gs))
-        if key == "model":  # field=none / flow=none leave empty placeholders that the gs3d model ignores
-            assert theirs.pop("flow") == {} and theirs.pop("network") == {"backbone": {}}
-        assert mine == theirs, key
+        # a second-stage-only setting leaves the first stage (and so its cache) as it is
+        for extra in ([], ["trainer.random_background=true"]):
+            c1 = first_stage_config(compose("config", overrides=["+experiment=splatfields3d_2stage", *extra]))
+            for key in ("model", "optim", "strategy", "init", "loss", "method", "trainer"):
+                mine, theirs = (OmegaConf.to_container(OmegaConf.select(c, key), resolve=True) if key != "method"
+                                else c[key] for c in (c1, gs))
+                if key == "model":  # field=none / flow=none leave empty placeholders that the gs3d model ignores
+                    assert theirs.pop("flow") == {} and theirs.pop("network") == {"backbone": {}}
+                assert mine == theirs, (key, extra)

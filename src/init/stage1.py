@@ -35,7 +35,9 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
     Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
-    ``protocol=two_stage_mip``): L_norm and L_Moran off, ``stage1.iterations``.
+    ``protocol=two_stage_mip``): L_norm and L_Moran off, ``stage1.iterations``, the scene's own
+    background (``trainer.random_background`` acts on the second stage only, so a cached first stage
+    is the same whichever way it is set).
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -47,6 +49,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.loss.lambda_norm = 0.0
         c.loss.lambda_moran = 0.0
         c.trainer.iterations = iterations
+        c.trainer.random_background = False
         c.capacity = None
         del c["stage1"]
     return c
