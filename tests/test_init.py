@@ -53,6 +53,17 @@ def test_from_run_select_opacity_keeps_the_most_opaque_first_stage_splats(scene,
         FromRunInit(run_dir=str(tmp_path), select="largest")
 
 
+def test_an_unknown_query_selection_is_refused_before_the_run():
+    from hydra import compose, initialize_config_module
+
+    from src.utils.validate import ConfigValueError, validate_run_config
+
+    with initialize_config_module("conf", version_base="1.3"):
+        validate_run_config(compose("config", overrides=["init.select=opacity"]))  # the main job: init=from_run
+        with pytest.raises(ConfigValueError, match=r"init\.select='largest': expected one of random, opacity"):
+            validate_run_config(compose("config", overrides=["init.select=largest"]))
+
+
 def test_from_run_without_artefact_names_the_command(scene, tmp_path):
     with pytest.raises(FileNotFoundError, match=r"python -m src.run \+experiment=gs3d"):
         FromRunInit(run_dir=str(tmp_path / "missing"))(scene, torch.Generator())

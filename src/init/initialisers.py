@@ -11,6 +11,7 @@ from torch import Tensor
 
 from src.data.base import Scene
 from src.data.hull import sample_hull
+from src.utils.validate import QUERY_SELECT
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,7 @@ class FromRunInit(Initialiser):
             ``opacity`` (the most opaque splats of the first stage, sigmoid opacity, ties by index).
     """
 
-    SELECT = ("random", "opacity")
+    SELECT = QUERY_SELECT
 
     def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True,
                  select: str = "random") -> None:
