@@ -73,3 +73,14 @@ def test_each_step_trains_on_a_random_background(tmp_path):
 def test_random_background_needs_masks(tmp_path):
     with pytest.raises(ValueError, match="random_background=true needs masked training views"):
         _fit(tmp_path, True, masks=False)
+
+
+def test_a_non_boolean_setting_is_refused_before_the_run():
+    from hydra import compose, initialize_config_module
+
+    from src.utils.validate import ConfigValueError, validate_run_config
+
+    with initialize_config_module("conf", version_base="1.3"):
+        validate_run_config(compose("config", overrides=["trainer.random_background=true"]))
+        with pytest.raises(ConfigValueError, match=r"trainer\.random_background='sometimes': expected true or false"):
+            validate_run_config(compose("config", overrides=["trainer.random_background=sometimes"]))

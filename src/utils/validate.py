@@ -70,12 +70,15 @@ def validate_run_config(cfg: DictConfig) -> None:
     Iterations > 0; every learning rate (``optim.lr.<group>.init`` / ``final``) > 0; splat budgets
     (``init.n_points``, ``strategy.max_splats``, ``schedule.*``) > 0; ``dataset.n_views`` >= 1;
     ``dataset.downscale`` > 0; ``trainer.views_per_step`` >= 1; ``trainer.compile`` a known backend;
-    ``init.select`` one of :data:`QUERY_SELECT`.
+    ``init.select`` one of :data:`QUERY_SELECT`; ``trainer.random_background`` a boolean.
     """
     compile_backend(OmegaConf.select(cfg, "trainer.compile", default=None))
     select = OmegaConf.select(cfg, "init.select", default="random")
     if select not in QUERY_SELECT:
         raise ConfigValueError(f"init.select={select!r}: expected one of {', '.join(QUERY_SELECT)}")
+    random_background = OmegaConf.select(cfg, "trainer.random_background", default=False)
+    if not isinstance(random_background, bool):
+        raise ConfigValueError(f"trainer.random_background={random_background!r}: expected true or false")
     _require(cfg, "trainer.iterations", integer=True, allow_null=False)
     _require(cfg, "trainer.views_per_step", integer=True)
     _require(cfg, "trainer.log_every", integer=True)
