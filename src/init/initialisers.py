@@ -103,7 +103,7 @@ class FromRunInit(Initialiser):
     def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True,
                  select: str = "random") -> None:
         if select not in self.SELECT:
-            raise ValueError(f"init.select must be one of {', '.join(self.SELECT)}, got {select!r}")
+            raise ValueError(f"init.select={select!r}: expected one of {', '.join(self.SELECT)}")
         self.run_dir = run_dir
         self.n_points = n_points
         self.hull_filter = hull_filter
