@@ -36,8 +36,8 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
 
     Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
     ``protocol=two_stage_mip``): L_norm and L_Moran off, ``stage1.iterations``, the scene's own
-    background (``trainer.random_background`` acts on the second stage only, so a cached first stage
-    is the same whichever way it is set).
+    background and one view per step (``trainer.random_background`` and ``trainer.views_per_step`` act
+    on the second stage only, so a cached first stage is the same whichever way they are set).
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -50,6 +50,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.loss.lambda_moran = 0.0
         c.trainer.iterations = iterations
         c.trainer.random_background = False
+        c.trainer.views_per_step = 1  # one view per step, as gs3d / mip_splatting: the cache is the same either way
         c.capacity = None
         del c["stage1"]
     return c
