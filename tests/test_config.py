@@ -109,8 +109,8 @@ def test_the_main_job_is_splatfields3d_mip_and_splatfields3d_2stage_the_papers_p
 
 def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     """protocol=two_stage_mip: a Mip-Splatting first stage in its own cache, the 2D Mip filter in both
-    stages, the 3D filter on the predicted splats, and a second stage stopped before its LR schedule ends
-    (schedule.two_stage_mip_stop_at); everything else as protocol=two_stage."""
+    stages, the 3D filter on the predicted splats, and a second stage on several views per step, stopped
+    before its LR schedule ends (schedule.two_stage_mip_*); everything else as protocol=two_stage."""
     plain = _compose(["protocol=two_stage", "dataset.n_views=4"])
     mip = _compose(["protocol=two_stage_mip", "dataset.n_views=4"])
     assert mip.stage1.model._target_.endswith("MipGaussianSplatModel")
@@ -124,9 +124,10 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     assert cli.model.network.backbone.n_up_blocks == 3
     assert mip.init.run_dir.endswith("/mip_views4_it1500_seed0")
     assert plain.init.run_dir.endswith("/views4_it1500_seed0") and "mip_" not in plain.init.run_dir
-    # the main job's second stage stops at schedule.two_stage_mip_stop_at (scale=cpu: the whole 1 500), on
-    # the network LR schedule of a full second stage
-    assert mip.trainer.iterations == plain.trainer.iterations == 1500
+    # the main job's second stage (scale=cpu): 4 views per step, stopped at 600 iterations on the network
+    # LR schedule of a full 1 500-iteration second stage
+    assert (mip.trainer.iterations, plain.trainer.iterations) == (600, 1500)
+    assert (mip.trainer.views_per_step, plain.trainer.views_per_step) == (4, 1)
     assert mip.optim.lr.network.max_steps == plain.optim.lr.network.max_steps == 1500
     early = _compose(["protocol=two_stage_mip", "schedule.two_stage_mip_stop_at=600"])
     assert (early.trainer.iterations, early.optim.lr.network.max_steps) == (600, 1500)
@@ -135,7 +136,8 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
         if key == "init":
             a.pop("run_dir"), b.pop("run_dir")
         if key == "trainer":
-            a.pop("iterations"), b.pop("iterations")
+            for d in (a, b):
+                d.pop("iterations"), d.pop("views_per_step")
         assert a == b, key
     # the CLI first stage keeps its own path (no stage1 node there, no prefix)
     assert _compose(["+experiment=gs3d_stage1"]).paths.stage1_dir.endswith("/views8_it1500_seed0")
