@@ -129,8 +129,8 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     assert (mip.trainer.iterations, plain.trainer.iterations) == (600, 1500)
     assert (mip.trainer.views_per_step, plain.trainer.views_per_step) == (4, 1)
     assert mip.optim.lr.network.max_steps == plain.optim.lr.network.max_steps == 1500
-    early = _compose(["protocol=two_stage_mip", "schedule.two_stage_mip_stop_at=600"])
-    assert (early.trainer.iterations, early.optim.lr.network.max_steps) == (600, 1500)
+    early = _compose(["protocol=two_stage_mip", "schedule.two_stage_mip_stop_at=900"])
+    assert (early.trainer.iterations, early.optim.lr.network.max_steps) == (900, 1500)
     for key in ("strategy", "init", "optim", "trainer", "loss"):
         a, b = (OmegaConf.to_container(c[key], resolve=True) for c in (plain, mip))
         if key == "init":
