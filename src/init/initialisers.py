@@ -98,12 +98,10 @@ class FromRunInit(Initialiser):
             ``opacity`` (the most opaque splats of the first stage, sigmoid opacity, ties by index).
     """
 
-    SELECT = QUERY_SELECT
-
     def __init__(self, run_dir: str | None = None, n_points: int = 100_000, hull_filter: bool = True,
                  select: str = "random") -> None:
-        if select not in self.SELECT:
-            raise ValueError(f"init.select={select!r}: expected one of {', '.join(self.SELECT)}")
+        if select not in QUERY_SELECT:
+            raise ValueError(f"init.select={select!r}: expected one of {', '.join(QUERY_SELECT)}")
         self.run_dir = run_dir
         self.n_points = n_points
         self.hull_filter = hull_filter
