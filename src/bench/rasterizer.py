@@ -272,26 +272,24 @@ def _proj_fwd_bwd(project: Callable[..., Projected], splats: Splats, cam: Camera
 
 
 class _GsplatRasterizer(Rasterizer):
-    """gsplat on CUDA with matching settings (only when CUDA and gsplat are available)."""
+    """The gsplat backend (3DGS settings: near plane 0.2, dilation 0.3) on CUDA copies of the inputs,
+    its images moved back to the CPU (only when CUDA and gsplat are available)."""
 
     name = "gsplat"
 
-    def render(self, splats: Splats, camera: Camera, background: Tensor | None = None):
-        import gsplat  # optional dependency (CUDA machines)
+    def __init__(self) -> None:
+        from src.rasterizer.gsplat_backend import GsplatRasterizer
 
+        self.backend = GsplatRasterizer()
+
+    def render(self, splats: Splats, camera: Camera, background: Tensor | None = None):
         from src.core.splats import RenderOutput
 
         dev = torch.device("cuda")
-        s = splats.to(device=dev)
-        K = torch.tensor([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1]],
-                         dtype=torch.float32, device=dev)
-        bg = None if background is None else torch.cat([background, torch.zeros(1)]).to(dev)[None]
-        colors, alphas, _meta = gsplat.rasterization(
-            s.means, s.quats, s.scales, s.opacities, s.colors,
-            camera.world_to_cam.to(dev, torch.float32)[None], K[None], camera.width, camera.height,
-            near_plane=0.2, eps2d=0.3, packed=False, render_mode="RGB+ED", backgrounds=bg)
-        return RenderOutput(color=colors[0, ..., :3].cpu(), alpha=alphas[0, ..., 0].cpu(),
-                            depth=colors[0, ..., 3].cpu(), means2d=torch.zeros(0), radii=torch.zeros(0))
+        bg = None if background is None else background.to(dev)
+        out = self.backend.render(splats.to(device=dev), camera.to(dev), bg)
+        return RenderOutput(color=out.color.cpu(), alpha=out.alpha.cpu(), depth=out.depth.cpu(),
+                            means2d=torch.zeros(0), radii=torch.zeros(0))
 
 
 def _rasterizers() -> dict[str, Rasterizer]:

@@ -139,7 +139,7 @@ class GaussianSplatModel(SplatModel):
         self._edit(optimizer, None, new)
         if split.any():
             n_total = self.n_splats
-            keep = torch.ones(n_total, dtype=torch.bool)
+            keep = torch.ones(n_total, dtype=torch.bool, device=split.device)
             keep[: split.shape[0]][split] = False
             self._edit(optimizer, keep, None)
 

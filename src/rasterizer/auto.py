@@ -14,19 +14,31 @@ log = logging.getLogger(__name__)
 def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: bool = False) -> Rasterizer:
     """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort.
 
+    On CUDA, 2D surfels and a missing gsplat fall back to ``torch_ref`` on the GPU (the compiled kernel
+    is CPU-only): gsplat's 2DGS path renders as the reference does but trains the 2DGS baseline to a
+    far lower PSNR (docs/baselines.md, "2DGS on CUDA"); ``rasterizer=gsplat`` still forces it.
+
     Args:
         antialiased: Mip-Splatting's 2D Mip filter instead of 3DGS's dilation (every backend).
         filter_2d: the 2D Mip filter's variance in pixels^2 (Mip-Splatting: 0.1).
         surfels: 2D Gaussian surfels by ray-splat intersection (2DGS), in every backend.
     """
+    from src.rasterizer.torch_ref import TorchRefRasterizer
+
     aa = {"antialiased": antialiased, "filter_2d": filter_2d, "surfels": surfels}
     if torch.cuda.is_available():
+        if surfels:
+            log.warning("2D surfels on CUDA: using torch_ref on the GPU (gsplat's 2DGS path is not validated "
+                        "for training; rasterizer=gsplat forces it)")
+            return TorchRefRasterizer(**aa)
         try:
             from src.rasterizer.gsplat_backend import GsplatRasterizer
 
             return GsplatRasterizer(**aa)
         except ImportError as e:
-            log.warning("CUDA present but gsplat unavailable (%s); trying the cpu kernel", e)
+            log.warning("CUDA present but gsplat unavailable (%s); using torch_ref on the GPU "
+                        "(pip install -e '.[cuda]' for gsplat)", e)
+            return TorchRefRasterizer(**aa)
     try:
         from src.rasterizer.cpu import CpuRasterizer
 
@@ -38,6 +50,4 @@ def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: 
     except Exception as e:
         log.warning("compiled cpu rasterizer unavailable (%s: %s); using the slow torch_ref",
                     type(e).__name__, e)
-    from src.rasterizer.torch_ref import TorchRefRasterizer
-
     return TorchRefRasterizer(**aa)

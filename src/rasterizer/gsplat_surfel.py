@@ -47,7 +47,7 @@ def render_surfels_gsplat(splats: Splats, camera: Camera, background: Tensor | N
     view = camera.world_to_cam.to(dev, dt)[None]  # [1, 4, 4]
     colors, alphas, normals, _surf_normals, distort, _median, meta = rasterization_2dgs(
         splats.means, torch.nn.functional.normalize(splats.quats, dim=-1), splats.scales, splats.opacities,
-        splats.colors, view, K, camera.width, camera.height, near_plane=near_plane, far_plane=far_plane,
+        splats.colors[None], view, K, camera.width, camera.height, near_plane=near_plane, far_plane=far_plane,
         packed=False, render_mode="RGB+ED", distloss=True, backgrounds=None,
     )
     alpha = alphas[0, ..., 0]  # [H, W]

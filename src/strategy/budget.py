@@ -97,5 +97,5 @@ class BudgetStrategy(Strategy):
         order = torch.argsort(score, descending=True, stable=True)
         mask = torch.ones(model.n_splats, dtype=torch.bool)
         mask[order[:keep_n]] = False
-        model.prune(optimizer, mask)
+        model.prune(optimizer, mask.to(model.canonical_means().device))
         return {"pruned": int(mask.sum()), "n_splats": model.n_splats}

@@ -98,7 +98,7 @@ class ADCStrategy(Strategy):
             model.densify(optimizer, clone, split, self.n_split, generator)
         # prune (3DGS: low opacity; after the first reset, also splats too big in world space)
         op = model.opacity_values()
-        prune = torch.zeros(model.n_splats, dtype=torch.bool)
+        prune = torch.zeros(model.n_splats, dtype=torch.bool, device=grads.device)
         if op is not None:
             prune |= op < self.prune_opacity
         if self.reset_every > 0 and it > self.reset_every:
