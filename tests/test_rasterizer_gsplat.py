@@ -101,3 +101,13 @@ def test_auto_on_cuda_without_gsplat_or_with_surfels_uses_the_reference(monkeypa
     monkeypatch.setattr(builtins, "__import__", no_gsplat)
     rast = auto_rasterizer(antialiased=True)
     assert isinstance(rast, TorchRefRasterizer) and rast.antialiased
+
+
+def test_auto_follows_the_runs_device(monkeypatch):
+    """A run on the CPU of a CUDA machine (``device=cpu``) gets a CPU rasterizer, not gsplat."""
+    from src.rasterizer.auto import auto_rasterizer
+    from src.rasterizer.cpu import CpuRasterizer
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert isinstance(auto_rasterizer(device="cpu"), CpuRasterizer)
+    assert isinstance(auto_rasterizer(surfels=True, device="cuda:0"), TorchRefRasterizer)

@@ -11,7 +11,8 @@ from src.rasterizer.base import Rasterizer
 log = logging.getLogger(__name__)
 
 
-def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: bool = False) -> Rasterizer:
+def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: bool = False,
+                    device: str = "auto") -> Rasterizer:
     """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort.
 
     On CUDA, 2D surfels and a missing gsplat fall back to ``torch_ref`` on the GPU (the compiled kernel
@@ -22,11 +23,14 @@ def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: 
         antialiased: Mip-Splatting's 2D Mip filter instead of 3DGS's dilation (every backend).
         filter_2d: the 2D Mip filter's variance in pixels^2 (Mip-Splatting: 0.1).
         surfels: 2D Gaussian surfels by ray-splat intersection (2DGS), in every backend.
+        device: the run's device (``auto`` | ``cpu`` | ``cuda[:i]``, the config's ``device``): CUDA
+            rasterizers only where the run's tensors live on CUDA.
     """
     from src.rasterizer.torch_ref import TorchRefRasterizer
 
     aa = {"antialiased": antialiased, "filter_2d": filter_2d, "surfels": surfels}
-    if torch.cuda.is_available():
+    on_cuda = torch.cuda.is_available() if device == "auto" else str(device).startswith("cuda")
+    if on_cuda:
         if surfels:
             log.warning("2D surfels on CUDA: using torch_ref on the GPU (gsplat's 2DGS path is not validated "
                         "for training; rasterizer=gsplat forces it)")
