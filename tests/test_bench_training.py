@@ -132,3 +132,20 @@ def test_a_quick_run_does_not_replace_the_kept_result():
     assert output_path(None, quick=False) == DEFAULT_OUT
     assert output_path(None, quick=True) is None  # --quick prints only
     assert output_path(Path("x.json"), quick=True) == Path("x.json")
+
+
+def test_device_argument_is_checked_before_any_work(capsys, monkeypatch):
+    """--device names cpu or cuda; cuda needs a GPU; gsplat needs --device cuda (one-line errors, exit 2)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for argv, message in ((["--device", "tpu"], "--device 'tpu': choose cpu or cuda"),
+                          (["--device", "cuda"], "--device cuda: no CUDA GPU on this machine"),
+                          (["--rasterizer", "gsplat"], "--rasterizer gsplat needs --device cuda")):
+        with pytest.raises(SystemExit) as exc:
+            main(["--quick", *argv])
+        assert exc.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_rows_name_their_device(tmp_path, capsys):
+    assert {r["device"] for r in _tiny_bench(tmp_path, capsys, 300)} == {"cpu"}

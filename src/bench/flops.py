@@ -77,32 +77,45 @@ def count_flops(fn: Callable[[], object]) -> dict[str, int]:
     return {"total": conv + matmul, "conv": conv, "matmul": matmul}
 
 
-def _best_gflops(fn: Callable[[], object], flops: float, reps: int) -> float:
-    return flops / best_time(fn, reps, warmup=2) / 1e9
+def _best_gflops(fn: Callable[[], object], flops: float, reps: int, sync: Callable[[], None] | None = None) -> float:
+    """GFLOP/s of the fastest of ``reps`` calls of ``fn``; ``sync`` waits for a GPU's queued work."""
+    if sync is None:
+        return flops / best_time(fn, reps, warmup=2) / 1e9
+
+    def timed() -> None:
+        fn()
+        sync()
+
+    sync()
+    return flops / best_time(timed, reps, warmup=2) / 1e9
 
 
 @torch.no_grad()
-def measure_peaks(dtype: torch.dtype = torch.float32, reps: int = 5) -> dict[str, float]:
-    """Best measured GFLOP/s of matrix products and of 3x3 convolutions in ``dtype`` (CPU).
+def measure_peaks(dtype: torch.dtype = torch.float32, reps: int = 5, device: str = "cpu") -> dict[str, float]:
+    """Best measured GFLOP/s of matrix products and of 3x3 convolutions in ``dtype`` on ``device``.
 
-    Matrix products: square 1024 and 2048 and the tall-skinny [65536, 128] x [128, 128] of an MLP
-    layer; convolutions: 32 -> 32 channels at 80 and 160 px and 64 -> 64 at 128 px, NCHW and
-    channels-last. Each kind keeps its best (fastest of ``reps``) over shapes and layouts.
+    Matrix products: square 1024 and 2048 (on CUDA also 4096 and 8192) and the tall-skinny
+    [65536, 128] x [128, 128] of an MLP layer; convolutions: 32 -> 32 channels at 80 and 160 px and
+    64 -> 64 at 128 px, NCHW and channels-last. Each kind keeps its best (fastest of ``reps``) over
+    shapes and layouts.
     """
+    dev = torch.device(device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else None
     g = torch.Generator().manual_seed(0)
     mm = 0.0
-    for m, k, n in ((1024, 1024, 1024), (2048, 2048, 2048), (65536, 128, 128)):
-        a = torch.randn(m, k, generator=g).to(dtype)
-        b = torch.randn(k, n, generator=g).to(dtype)
-        mm = max(mm, _best_gflops(lambda a=a, b=b: a @ b, 2.0 * m * k * n, reps))
+    squares = (1024, 2048, 4096, 8192) if dev.type == "cuda" else (1024, 2048)
+    for m, k, n in (*((s, s, s) for s in squares), (65536, 128, 128)):
+        a = torch.randn(m, k, generator=g).to(dev, dtype)
+        b = torch.randn(k, n, generator=g).to(dev, dtype)
+        mm = max(mm, _best_gflops(lambda a=a, b=b: a @ b, 2.0 * m * k * n, reps, sync))
     conv = 0.0
     for c, r in ((32, 80), (32, 160), (64, 128)):
-        w = torch.randn(c, c, 3, 3, generator=g).to(dtype)
+        w = torch.randn(c, c, 3, 3, generator=g).to(dev, dtype)
         for fmt in (torch.contiguous_format, torch.channels_last):
-            x = torch.randn(1, c, r, r, generator=g).to(dtype).contiguous(memory_format=fmt)
+            x = torch.randn(1, c, r, r, generator=g).to(dev, dtype).contiguous(memory_format=fmt)
             wf = w.contiguous(memory_format=fmt)
             conv = max(conv, _best_gflops(lambda x=x, wf=wf: torch.nn.functional.conv2d(x, wf, padding=1),
-                                          2.0 * 9 * c * c * r * r, reps))
+                                          2.0 * 9 * c * c * r * r, reps, sync))
     return {"matmul_gflops": mm, "conv_gflops": conv}
 
 

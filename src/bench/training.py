@@ -13,7 +13,9 @@ times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_m
 may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run; ``--compile
 BACKEND`` repeats the methods with networks under ``trainer.compile=BACKEND`` (``first_step_ms``, the
 first warm-up step, holds the compilation).
-Timings are medians over the timed iterations; compare them as ratios within one run.
+Timings are medians over the timed iterations; compare them as ratios within one run. ``--device
+cuda`` builds the model and the view on the GPU (``rasterizer=auto`` then picks gsplat), waits for the
+GPU at every timer and measures the peaks there.
 
 The floor: each row counts the FLOPs of its networks per iteration (forward + backward of the splat
 prediction, ``src.bench.flops.count_flops``; the rasterizer is not counted), ``generator_flops`` of
@@ -39,7 +41,7 @@ import statistics
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 METHODS = ("gs3d", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp", "deformable3dgs",
@@ -64,12 +66,22 @@ def _rss_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _sync(device) -> Callable[[], None]:
+    """Wait for the queued GPU work on a CUDA ``device`` (a no-op on the CPU), so timers see it."""
+    import torch
+
+    return torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+
+
 def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
-            rasterizer: str = "auto", overrides: Sequence[str] = ()) -> dict:
+            rasterizer: str = "auto", overrides: Sequence[str] = (), device: str = "cpu") -> dict:
     """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process).
 
     ``overrides``: Hydra overrides of this variant, e.g. ``field_budget.head_width=64`` (wide heads;
     narrow heads get half) or ``field_budget.triplane_up_blocks=2`` (40 px tri-planes).
+    ``device``: ``cpu`` or ``cuda``; on CUDA every timer waits for the GPU (``iter_ms`` is the
+    synchronised step; ``ms``, the trainer's own split, then holds launch times, and ``split`` is
+    synchronised at every mark).
     """
     from dataclasses import replace
     from types import SimpleNamespace
@@ -91,7 +103,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config_name="config",
-                      overrides=[f"+experiment={method}", f"rasterizer={rasterizer}", *overrides])
+                      overrides=[f"+experiment={method}", f"rasterizer={rasterizer}", f"device={device}", *overrides])
     # Time the phase that dominates training: dynamic models at one of BENCH_FRAMES frames, with the
     # deformation on (Deformable-3DGS keeps it off during its warm-up; the warm-up is skipped here).
     dynamic = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or "warm_up" in cfg.model
@@ -101,14 +113,16 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
 
-    model = build(cfg.model, init=pts, n_frames=BENCH_FRAMES if dynamic else 1)
+    dev = torch.device(device)
+    sync = _sync(dev)
+    model = build(cfg.model, init=pts.to(dev), n_frames=BENCH_FRAMES if dynamic else 1).to(dev)
     rasterizer = build(cfg.rasterizer)
     loss_fn = build(cfg.loss)
     optimizer = build(cfg.optim)(groups=model.param_groups(), extent=4.0)
     f = 0.5 * width / math.tan(0.5 * 0.69)
     w2c = look_at(torch.tensor([0.0, -4.0, 1.0]), torch.zeros(3))
-    cam = Camera(w2c, f, f, width / 2, width / 2, width, width)
-    target = torch.rand(width, width, 3, generator=g)
+    cam = Camera(w2c, f, f, width / 2, width / 2, width, width).to(dev)
+    target = torch.rand(width, width, 3, generator=g).to(dev)
     if dynamic:
         cam = replace(cam, frame_id=BENCH_FRAMES // 2, time=0.5)
     view = View(camera=cam, image=target, mask=(target[..., 0] > 0.5).float(), image_id=0)
@@ -118,39 +132,45 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     guard = DivergenceGuard(check_grads=False, collapse_psnr=-math.inf)
     times: dict[str, list[float]] = {k: [] for k in PARTS}
     first_step_ms = None
+    synced: list[float] = []  # [iters] ms of each timed step, the GPU waited for (CUDA)
+    bg = torch.ones(3, device=dev)
     for it in range(warmup + iters):
+        sync()
         t0 = time.perf_counter()
-        step = Trainer.train_step(model, [view], rasterizer, loss_fn, optimizer, NoDensification(), guard, it, g,
-                                  torch.ones(3))
+        step = Trainer.train_step(model, [view], rasterizer, loss_fn, optimizer, NoDensification(), guard, it, g, bg)
+        sync()
         if it == 0:
             first_step_ms = 1000 * (time.perf_counter() - t0)
         if it >= warmup:
+            synced.append(1000 * (time.perf_counter() - t0))
             for k in PARTS:
                 times[k].append(1000 * step["timing"][k])
     ms = {k: statistics.median(v) for k, v in times.items()}
-    totals = [sum(times[k][i] for k in PARTS) for i in range(iters)]
+    totals = synced if dev.type == "cuda" else [sum(times[k][i] for k in PARTS) for i in range(iters)]
     row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field(cfg) else None,
            "plane_blocks": _plane_blocks(cfg),
            "plane_px": getattr(model.network.backbone, "resolution", None) if has_field(cfg) else None,
            "overrides": list(overrides), "n_splats": model.n_splats,
            "compile": compile_backend(backend), "has_network": bool(model.networks()), "first_step_ms": first_step_ms,
            "n_params": model.n_params(), "rasterizer": getattr(rasterizer, "name", type(rasterizer).__name__),
-           "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals)}
-    row["backbone_ms"] = _backbone_ms(model, iters) if has_field(cfg) else None
+           "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals), "device": dev.type}
+    row["backbone_ms"] = _backbone_ms(model, iters, sync) if has_field(cfg) else None
     row.update(_flops(model, cam, has_field(cfg)))
-    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup)
+    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup, sync)
     row["generator_ms"] = row["split"]["generator_fwd"] + row["split"]["generator_bwd"] if has_field(cfg) else None
     model.eval()
     with torch.no_grad():
         baked = model.bake()
         fcam = cam.scaled(fps_width / width)
-        rasterizer.render(baked, fcam, torch.ones(3))
+        rasterizer.render(baked, fcam, bg)
+        sync()
         t0 = time.perf_counter()
         reps = 5
         for _ in range(reps):
-            rasterizer.render(baked, fcam, torch.ones(3))
+            rasterizer.render(baked, fcam, bg)
+        sync()
         row["fps_baked"] = reps / (time.perf_counter() - t0)
-    row["peak_mem_mb"] = _rss_peak_mb()
+    row["peak_mem_mb"] = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _rss_peak_mb()
     return row
 
 
@@ -199,10 +219,12 @@ def flop_floor(row: dict, peaks: dict) -> float:
     return floor_ms(gen, gen_peaks) + floor_ms(heads, heads_peaks)
 
 
-def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int) -> dict[str, float]:
+def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int,
+           sync: Callable[[], None] = lambda: None) -> dict[str, float]:
     """Median ms of each part of a training step (``SPLIT``), timed with autograd hooks: the
     rasterizer's backward ends when the first splat attribute receives its gradient, the heads'
-    backward when the planes receive theirs."""
+    backward when the planes receive theirs. ``sync`` runs before every mark (CUDA: the GPU's
+    queued work is counted where it was launched)."""
     import torch
 
     from src.trainer.trainer import Trainer  # noqa: F401 - same import state as the timed step
@@ -216,15 +238,19 @@ def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int)
 
         def mark(name: str, marks: dict[str, float] = marks):
             def hook(grad):
+                sync()
                 marks.setdefault(name, time.perf_counter())
                 return grad
             return hook
 
         optimizer.set_step(it)
+        sync()
         t0 = time.perf_counter()
         state = backbone.prepare() if backbone is not None else None
+        sync()
         t1 = time.perf_counter()
         splats = model.splats_for(cams, state=state) if state is not None else model.splats_for(cams)
+        sync()
         t2 = time.perf_counter()
         for s in splats:
             for k in ("means", "scales", "quats", "opacities", "colors"):
@@ -233,11 +259,13 @@ def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int)
                     v.register_hook(mark("attrs"))
         if torch.is_tensor(state) and state.requires_grad:
             state.register_hook(mark("planes"))
-        renders = [rasterizer.render(s, view.camera, torch.ones(3)) for s in splats]
+        renders = [rasterizer.render(s, view.camera, torch.ones(3, device=s.means.device)) for s in splats]
         loss_fn(renders, [view], splats, iteration=it)["total"].backward()
+        sync()
         t3 = time.perf_counter()
         optimizer.step()
         optimizer.zero_grad()
+        sync()
         t4 = time.perf_counter()
         if it < warmup:
             continue
@@ -249,19 +277,21 @@ def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int)
     return {k: statistics.median(v) for k, v in times.items()}
 
 
-def _backbone_ms(model, iters: int) -> float | None:
+def _backbone_ms(model, iters: int, sync: Callable[[], None] = lambda: None) -> float | None:
     """Median ms of the field backbone alone (e.g. the tri-plane CNN), forward + backward of its output
     sum: the part of a SplatFields step that does not scale with the splat count or the head width."""
     import torch
 
     times = []
     for _ in range(iters + 1):
+        sync()
         t0 = time.perf_counter()
         state = model.network.backbone.prepare()
         tensors = [t for t in (state if isinstance(state, (list, tuple)) else [state]) if torch.is_tensor(t)]
         if not tensors or not tensors[0].requires_grad:
             return None  # a backbone without trainable state (NoBackbone)
         sum(t.sum() for t in tensors).backward()
+        sync()
         times.append(1000 * (time.perf_counter() - t0))
         model.zero_grad(set_to_none=True)
     return statistics.median(times[1:])
@@ -280,7 +310,7 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequ
     """One row, measured in a subprocess; ``variant`` (e.g. ``{"head_width": 32}``) names a failed row."""
     cmd = [sys.executable, "-m", "src.bench", "training", "--single", method, str(n), "--iters", str(args.iters),
            "--warmup", str(args.warmup), "--width", str(args.width), "--fps-width", str(args.fps_width),
-           "--rasterizer", args.rasterizer]
+           "--rasterizer", args.rasterizer, "--device", args.device]
     for o in overrides:
         cmd += ["--override-single", o]
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=Path(__file__).resolve().parents[2])
@@ -371,6 +401,15 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
             ap.error(f"--compile {args.compile!r}: {exc}")
     if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
         ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
+    if args.device != "cpu" and not (args.device == "cuda" or args.device.startswith("cuda:")):
+        ap.error(f"--device {args.device!r}: choose cpu or cuda (cuda:N)")
+    if args.device != "cpu":
+        import torch
+
+        if not torch.cuda.is_available():
+            ap.error(f"--device {args.device}: no CUDA GPU on this machine")
+    elif args.rasterizer == "gsplat":
+        ap.error("--rasterizer gsplat needs --device cuda")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -386,6 +425,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=100)
     ap.add_argument("--fps-width", type=int, default=200)
     ap.add_argument("--rasterizer", default="auto", help="rasterizer config (auto, cpu, torch_ref, gsplat)")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the model, the views and the peaks on it; "
+                    "timers wait for the GPU)")
     ap.add_argument("--head-widths", default="",
                     help="also time the methods with neural fields at these field_budget.head_width values, "
                          "e.g. 64,32 (the configured width is always timed)")
@@ -407,7 +448,7 @@ def main(argv: list[str] | None = None) -> int:
     check_arguments(ap, args)
     if args.single:
         print(json.dumps(measure(args.single[0], int(args.single[1]), args.iters, args.warmup, args.width,
-                                 args.fps_width, args.rasterizer, args.override_single)))
+                                 args.fps_width, args.rasterizer, args.override_single, args.device)))
         return 0
     methods = ["gs3d", "splatfields3d_mip"] if args.quick else args.methods.split(",")
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
@@ -418,8 +459,10 @@ def main(argv: list[str] | None = None) -> int:
     from src.bench.flops import measure_peaks
     from src.utils.cpu import cpu_has_native_bf16
 
-    peaks = {"float32": measure_peaks(torch.float32)}
-    peaks["bfloat16"] = measure_peaks(torch.bfloat16) if cpu_has_native_bf16() else peaks["float32"]
+    cuda = args.device.startswith("cuda")
+    peaks = {"float32": measure_peaks(torch.float32, device=args.device)}
+    peaks["bfloat16"] = (measure_peaks(torch.bfloat16, device=args.device) if cuda or cpu_has_native_bf16()
+                         else peaks["float32"])
     print("peaks GFLOP/s: " + ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} conv {p['conv_gflops']:.0f}"
                                          for d, p in peaks.items()))
     rows = [_run_isolated(m, n, args) for n in sizes for m in methods]

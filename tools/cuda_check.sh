@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# The project's CUDA path on a GPU machine, in one go (about 5 minutes on one H200, gsplat's first
+# JIT build included): gsplat parity tests, smoke runs of every static and 4D method on the GPU,
+# the default command against 3DGS (full runs, wall time), the training and rasterizer benchmarks.
+#   pip install -r requirements-lock.txt -e ".[dev,cuda]"   # then:
+#   bash tools/cuda_check.sh [OUT_DIR]                      # default outputs/cuda_check
+# Each step's failure is reported and the next step runs; the exit code counts the failed steps.
+set -u
+out="${1:-outputs/cuda_check}"
+mkdir -p "$out"
+export PYTHONUNBUFFERED=1
+failed=0
+step() {  # step NAME COMMAND...: run, report its time and exit code
+  local name="$1"; shift
+  local t0=$SECONDS
+  echo "=== $name"
+  "$@" || { echo "--- $name failed (exit $?)"; failed=$((failed + 1)); }
+  echo "--- $name: $((SECONDS - t0)) s"
+}
+python -c "import torch; assert torch.cuda.is_available(), 'no CUDA GPU'; print(torch.__version__, torch.cuda.get_device_name())" || exit 2
+step "gsplat build" python -c "from gsplat.cuda._backend import _C; assert _C is not None"
+step "gsplat parity tests" python -m pytest -q -p no:cacheprovider tests/test_rasterizer_gsplat.py -rs
+for e in splatfields3d_mip gs3d gs3d_moran mip_splatting gs2d lightgaussian owl_4view deformable3dgs gaussians4d; do
+  step "smoke $e" python -m src.run "+experiment=$e" +ci=smoke device=cuda "hydra.run.dir=$out/smoke_$e" \
+    "paths.stage1_dir=$out/stage1_smoke"
+done
+step "full run 3DGS" python -m src.run +experiment=gs3d device=cuda "hydra.run.dir=$out/gs3d"
+step "full run, the main job" python -m src.run device=cuda "hydra.run.dir=$out/main" "paths.stage1_dir=$out/stage1"
+step "training benchmark" python -m src.bench training --device cuda --methods gs3d,splatfields3d_mip,owl_4view \
+  --sizes 10000,50000 --out "$out/training.json"
+step "rasterizer benchmark" python -m src.bench rasterizer --quick --out "$out/rasterizer.json" \
+  --chart "$out/rasterizer.png"
+python - "$out" <<'PY'
+import json, sys
+from pathlib import Path
+for p in sorted(Path(sys.argv[1]).glob("*/metrics.json")):
+    m = json.loads(p.read_text())
+    mt = m.get("metrics", {})
+    print(f"{p.parent.name:<28} {m.get('status'):<8} {m.get('rasterizer') or '-':<10} wall {m.get('wall_s') or 0:7.1f} s"
+          f"  PSNR {mt.get('psnr') or float('nan'):6.2f}  {m.get('error') or ''}")
+PY
+echo "failed steps: $failed"
+exit "$failed"
