@@ -111,3 +111,69 @@ def test_auto_follows_the_runs_device(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert isinstance(auto_rasterizer(device="cpu"), CpuRasterizer)
     assert isinstance(auto_rasterizer(surfels=True, device="cuda:0"), TorchRefRasterizer)
+
+
+def _fake_gsplat(monkeypatch) -> dict:
+    """A stand-in ``gsplat`` module whose rasterizers follow gsplat's batched API on the CPU: the image
+    depends on the projected centres ``meta["means2d"]`` [1, N, 2] (Gaussian blobs), as gsplat's does."""
+    import sys
+    import types
+
+    seen: dict = {}
+
+    def project(means, viewmats, Ks):
+        cam = means @ viewmats[0, :3, :3].T + viewmats[0, :3, 3]  # [N, 3]
+        uv = cam[:, :2] / cam[:, 2:3] @ Ks[0, :2, :2].T + Ks[0, :2, 2]  # [N, 2] pixels
+        return uv[None], cam[:, 2]
+
+    def blobs(means2d, colors, width, height):
+        ys, xs = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+        pix = torch.stack([xs, ys], -1).reshape(-1, 1, 2)  # [P, 1, 2]
+        w = torch.exp(-((pix - means2d[0][None]) ** 2).sum(-1) / 4.0)  # [P, N]
+        img = (w @ colors.reshape(-1, colors.shape[-1])).reshape(1, height, width, -1)
+        return img, w.sum(-1).clamp(max=1).reshape(1, height, width, 1)
+
+    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **_):
+        means2d, z = project(means, viewmats, Ks)
+        img, alpha = blobs(means2d, colors, width, height)
+        seen["means2d"] = means2d
+        means2d.retain_grad()
+        depth = alpha * z.mean()
+        radii = torch.full((1, means.shape[0], 2), 3, dtype=torch.int32)
+        return torch.cat([img, depth], -1), alpha, {"means2d": means2d, "radii": radii}
+
+    def rasterization_2dgs(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **_):
+        means2d, z = project(means, viewmats, Ks)
+        densify = torch.zeros_like(means2d, requires_grad=True)  # gsplat: holds the densification gradient
+        img, alpha = blobs(means2d + densify, colors[0], width, height)
+        seen["gradient_2dgs"] = densify
+        densify.retain_grad()
+        normals = torch.zeros(1, height, width, 3)
+        meta = {"means2d": means2d.detach(), "radii": torch.full((1, means.shape[0]), 3, dtype=torch.int32),
+                "gradient_2dgs": densify}
+        return (torch.cat([img, alpha * z.mean()], -1), alpha, normals, normals, torch.zeros(1, height, width, 1),
+                alpha, meta)
+
+    fake = types.ModuleType("gsplat")
+    fake.rasterization, fake.rasterization_2dgs = rasterization, rasterization_2dgs
+    monkeypatch.setitem(sys.modules, "gsplat", fake)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    return seen
+
+
+@pytest.mark.parametrize("surfels", [False, True])
+def test_the_gsplat_wrappers_hand_the_view_space_gradient_to_means2d(monkeypatch, surfels):
+    """RenderOutput.means2d.grad after the backward holds gsplat's screen-space gradient (camera 0),
+    which adaptive density control reads; a slice of gsplat's batched tensor would stay empty."""
+    from src.rasterizer.gsplat_backend import GsplatRasterizer
+
+    seen = _fake_gsplat(monkeypatch)
+    s = random_scene(20, seed=0, spread=0.3)
+    means = s.means.clone().requires_grad_(True)
+    out = GsplatRasterizer(surfels=surfels).render(type(s)(means=means, scales=s.scales, quats=s.quats,
+                                                        opacities=s.opacities, colors=s.colors),
+                                                   random_camera(16, 16, seed=1), torch.ones(3))
+    out.color.square().sum().backward()
+    source = seen["gradient_2dgs" if surfels else "means2d"]
+    assert out.means2d.is_leaf and out.means2d.grad is not None and out.means2d.grad.shape == (20, 2)
+    assert out.means2d.grad.abs().sum() > 0 and torch.equal(out.means2d.grad, source.grad[0])

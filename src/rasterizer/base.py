@@ -38,3 +38,21 @@ def check_surfels(surfels: bool, antialiased: bool) -> bool:
         raise ValueError("rasterizer.surfels (2DGS) and rasterizer.antialiased (Mip-Splatting) cannot be combined: "
                          "2D Gaussian surfels carry their own object-space low-pass filter")
     return bool(surfels)
+
+
+def gradient_leaf(values: Tensor, grad_source: Tensor | None = None) -> Tensor:
+    """A leaf [N, D] copy of camera 0 of ``values`` [1, N, D] whose ``.grad`` receives camera 0 of
+    ``grad_source``'s gradient (default: ``values``') during the backward.
+
+    For a backend whose screen-space tensors lie on the image's autograd graph only as a batch over
+    cameras: a slice of them taken after rendering is off the graph and its ``.grad`` would stay empty.
+    """
+    source = values if grad_source is None else grad_source
+    leaf = values[0].detach().clone().requires_grad_(source.requires_grad)  # [N, D]
+    if source.requires_grad:
+
+        def _to_leaf(grad: Tensor) -> None:
+            leaf.grad = grad.reshape(-1, *leaf.shape)[0].detach().clone()
+
+        source.register_hook(_to_leaf)
+    return leaf

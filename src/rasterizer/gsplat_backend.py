@@ -14,6 +14,11 @@ Semantic differences from the 3DGS rules that ``torch_ref``/``cpu`` follow, and 
   differ; renders agree with ``torch_ref`` up to these border effects (GPU-only parity test).
 * depth: gsplat's "RGB+ED" gives the alpha-normalised expected depth; it is multiplied by alpha here so
   ``RenderOutput.depth`` is the accumulated sum z alpha T like the other backends.
+* view-space gradient: gsplat's projected centres ``meta["means2d"]`` [1, N, 2] lie on the image's
+  autograd graph, but a slice of them taken after rendering does not, so its ``.grad`` would stay empty
+  and adaptive density control would never densify. ``RenderOutput.means2d`` is therefore a leaf
+  whose ``.grad`` a hook on the graph's tensor fills (:func:`~src.rasterizer.base.gradient_leaf`), as the other
+  backends' ``means2d.grad``.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.rasterizer.base import Rasterizer, check_surfels
+from src.rasterizer.base import Rasterizer, check_surfels, gradient_leaf
 
 
 class GsplatRasterizer(Rasterizer):
@@ -76,7 +81,7 @@ class GsplatRasterizer(Rasterizer):
         alpha = alphas[0, ..., 0]
         color = colors[0, ..., :C] + (1 - alpha)[..., None] * bg
         depth = colors[0, ..., C] * alpha
-        means2d = meta["means2d"][0]
+        means2d = gradient_leaf(meta["means2d"])  # [N, 2], .grad: the view-space gradient (pixels)
         radii = meta["radii"][0]
         if radii.ndim == 2:  # newer gsplat: per-axis radii
             radii = radii.max(dim=-1).values

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import Splats, SurfelRenderOutput
+from src.rasterizer.base import gradient_leaf
 
 
 def render_surfels_gsplat(splats: Splats, camera: Camera, background: Tensor | None = None,
@@ -56,13 +57,7 @@ def render_surfels_gsplat(splats: Splats, camera: Camera, background: Tensor | N
     radii = meta["radii"][0]
     if radii.ndim == 2:  # newer gsplat: per-axis radii
         radii = radii.max(dim=-1).values
-    means2d = meta["means2d"][0].detach().clone().requires_grad_(True)  # [N, 2] leaf: .grad set below
-    densify = meta.get("gradient_2dgs")
-    if densify is not None and densify.requires_grad:
-
-        def _to_means2d(grad: Tensor) -> None:
-            means2d.grad = grad.reshape(-1, means2d.shape[0], 2)[0].detach().clone()  # camera 0 of [C, N, 2]
-
-        densify.register_hook(_to_means2d)
+    # [N, 2] leaf of the projected centres; its .grad: gsplat's 2DGS densification gradient (camera 0)
+    means2d = gradient_leaf(meta["means2d"], meta.get("gradient_2dgs"))
     return SurfelRenderOutput(color=color, alpha=alpha, depth=depth, means2d=means2d, radii=radii.to(torch.int32),
                               normals=normals[0], distortion=distort[0, ..., 0])
