@@ -91,3 +91,18 @@ def test_sigkilled_run_resumes_to_identical_metrics(tmp_path):
         assert a["metrics"][key] == pytest.approx(b["metrics"][key], abs=1e-9), key
     assert b["metrics"]["iter_ms"] is not None  # timing sums carried over the kill
     assert not list(killed.glob(".*.tmp"))  # no temporary files of atomic writes left
+
+
+def test_resized_state_and_densification_statistics_stay_on_the_models_device():
+    """A checkpoint is read onto the CPU; a model or strategy resized or restored from it keeps its own
+    device (the 'meta' device stands in for a GPU: a tensor that lands on the CPU shows)."""
+    from src.models.gaussians import GaussianSplatModel
+    from src.strategy.default import ADCStrategy
+
+    model = GaussianSplatModel(torch.rand(10, 3) * 2 - 1, sh_degree=1).to("meta")
+    model.load_state_dict(GaussianSplatModel(torch.rand(20, 3) * 2 - 1, sh_degree=1).state_dict())
+    assert {p.device.type for p in model.parameters()} == {"meta"} and model.n_splats == 20
+    strategy = ADCStrategy()
+    strategy.load_state_dict({"grad_accum": torch.zeros(20), "count": torch.zeros(20)})
+    strategy._ensure(20, torch.device("meta"))
+    assert strategy.grad_accum.device.type == "meta" and strategy.count.device.type == "meta"

@@ -97,7 +97,7 @@ class GaussianSplatModel(SplatModel):
         for name in list(self.params.keys()):
             key = f"params.{name}"
             if key in state_dict and state_dict[key].shape != self.params[name].shape:
-                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key]))
+                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key], device=self.params[name].device))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     # -- densification ---------------------------------------------------------------------

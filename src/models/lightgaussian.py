@@ -126,7 +126,7 @@ class LightGaussianModel(GaussianSplatModel):
         for k in TEACHER_KEYS:
             key = f"teacher_{k}"
             if key in state_dict:
-                self.register_buffer(key, torch.empty_like(state_dict[key]))
+                self.register_buffer(key, torch.empty_like(state_dict[key], device=self.params["means"].device))
         out = super().load_state_dict(state_dict, strict=strict, assign=assign)
         self.max_sh_degree = min(self.max_sh_degree, self.stored_sh_degree)
         self.active_sh_degree = min(self.active_sh_degree, self.stored_sh_degree)

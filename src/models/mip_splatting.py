@@ -192,7 +192,7 @@ class MipGaussianSplatModel(GaussianSplatModel):
         """Load a checkpoint whose splat count may differ from the current one (resizes first)."""
         var = state_dict.get("filter_var")
         if var is not None and var.shape != self.filter_var.shape:
-            self.filter_var = torch.zeros_like(var)
+            self.filter_var = torch.zeros_like(var, device=self.filter_var.device)
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
 

@@ -172,7 +172,7 @@ class SplatFieldsModel(SplatModel):
         """Load a checkpoint whose number of canonical points may differ (resizes the buffers first)."""
         for name in ("canonical", "base_scale"):
             if name in state_dict and state_dict[name].shape != getattr(self, name).shape:
-                setattr(self, name, torch.empty_like(state_dict[name]))
+                setattr(self, name, torch.empty_like(state_dict[name], device=getattr(self, name).device))
         return super().load_state_dict(state_dict, strict=strict, assign=assign)
 
     # -- densification: add / remove / move query points -----------------------------------

@@ -49,6 +49,8 @@ class ADCStrategy(Strategy):
         if self.grad_accum is None or self.grad_accum.shape[0] != n:
             self.grad_accum = torch.zeros(n, device=device)
             self.count = torch.zeros(n, device=device)
+        elif self.grad_accum.device != device:  # restored from a checkpoint, which is read onto the CPU
+            self.grad_accum, self.count = self.grad_accum.to(device), self.count.to(device)
 
     def after_backward(self, model: SplatModel, renders: list[RenderOutput], iteration: int) -> None:
         if iteration >= self.stop_iter:
