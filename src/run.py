@@ -43,10 +43,24 @@ if not OmegaConf.has_resolver("half"):  # narrow heads are half the width of the
 
 
 def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda if available else cpu; otherwise the named device."""
+    """``auto`` -> cuda if available else cpu; otherwise the named device (``cpu``, ``cuda``, ``cuda:N``),
+    which must exist here (:class:`ConfigValueError` naming ``device`` otherwise)."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
+    try:
+        device = torch.device(str(name))
+    except RuntimeError as e:
+        raise ConfigValueError(f"device={name!r}: expected auto, cpu, cuda or cuda:N") from e
+    if device.type not in ("cpu", "cuda"):
+        raise ConfigValueError(f"device={name!r}: expected auto, cpu, cuda or cuda:N")
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise ConfigValueError(f"device={name}: no CUDA GPU is visible to this torch "
+                                   f"({torch.__version__}); use device=auto or device=cpu")
+        if device.index is not None and device.index >= count:
+            raise ConfigValueError(f"device={name}: only {count} CUDA GPU(s) visible (cuda:0 to cuda:{count - 1})")
+    return device
 
 
 def hydra_context() -> dict:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -67,3 +68,32 @@ def test_bench_bad_arguments_fail_at_once(sub, args, needle):
 def test_bench_unknown_subcommand():
     p = cli("src.bench", "nosuch")
     assert p.returncode == 2 and "rasterizer" in p.stdout + p.stderr
+
+
+def test_run_device_is_checked_before_anything_is_written(monkeypatch, tmp_path):
+    """device names a device that exists here: one-line errors naming ``device``, exit code 2."""
+    import torch
+
+    from src.run import resolve_device
+    from src.utils.validate import ConfigValueError
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for name, needle in (("tpu", "device='tpu': expected auto, cpu, cuda or cuda:N"),
+                         ("cuda", "device=cuda: no CUDA GPU is visible"), ("meta", "expected auto, cpu")):
+        with pytest.raises(ConfigValueError, match=re.escape(needle)):
+            resolve_device(name)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    with pytest.raises(ConfigValueError, match=re.escape("device=cuda:3: only 1 CUDA GPU(s) visible")):
+        resolve_device("cuda:3")
+    assert resolve_device("cpu") == torch.device("cpu") and resolve_device("cuda:0") == torch.device("cuda:0")
+
+
+def test_run_on_a_missing_gpu_exits_2_and_writes_nothing(tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has a CUDA GPU")
+    p = cli("src.run", "device=cuda", f"hydra.run.dir={tmp_path / 'run'}")
+    assert p.returncode == 2 and "error: device=cuda: no CUDA GPU is visible" in p.stderr, p.stderr
+    assert not (tmp_path / "run" / "metrics.json").exists()
