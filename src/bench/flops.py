@@ -77,10 +77,14 @@ def count_flops(fn: Callable[[], object]) -> dict[str, int]:
     return {"total": conv + matmul, "conv": conv, "matmul": matmul}
 
 
-def _best_gflops(fn: Callable[[], object], flops: float, reps: int, sync: Callable[[], None] | None = None) -> float:
-    """GFLOP/s of the fastest of ``reps`` calls of ``fn``; ``sync`` waits for a GPU's queued work."""
-    if sync is None:
-        return flops / best_time(fn, reps, warmup=2) / 1e9
+def device_sync(device: torch.device | str) -> Callable[[], None]:
+    """Wait for the queued GPU work on a CUDA ``device`` (a no-op on the CPU), so timers see it."""
+    return torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+
+
+def _best_gflops(fn: Callable[[], object], flops: float, reps: int, sync: Callable[[], None]) -> float:
+    """GFLOP/s of the fastest of ``reps`` calls of ``fn``; ``sync`` (:func:`device_sync`) waits for a
+    GPU's queued work."""
 
     def timed() -> None:
         fn()
@@ -100,7 +104,7 @@ def measure_peaks(dtype: torch.dtype = torch.float32, reps: int = 5, device: str
     shapes and layouts.
     """
     dev = torch.device(device)
-    sync = torch.cuda.synchronize if dev.type == "cuda" else None
+    sync = device_sync(dev)
     g = torch.Generator().manual_seed(0)
     mm = 0.0
     squares = (1024, 2048, 4096, 8192) if dev.type == "cuda" else (1024, 2048)

@@ -66,13 +66,6 @@ def _rss_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _sync(device) -> Callable[[], None]:
-    """Wait for the queued GPU work on a CUDA ``device`` (a no-op on the CPU), so timers see it."""
-    import torch
-
-    return torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
-
-
 def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps_width: int,
             rasterizer: str = "auto", overrides: Sequence[str] = (), device: str = "cpu") -> dict:
     """Time ``iters`` training steps of ``method`` at ``n_splats`` splats (runs in the current process).
@@ -91,6 +84,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     from omegaconf import OmegaConf
 
     import src.run  # noqa: F401 - registers ${repo:}
+    from src.bench.flops import device_sync
     from src.capacity import has_field
     from src.core.cameras import Camera, look_at
     from src.data.base import View
@@ -98,6 +92,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     from src.trainer.guard import DivergenceGuard
     from src.trainer.trainer import Trainer
     from src.utils.instantiate import build
+    from src.utils.memory import peak_memory_mb
     from src.utils.validate import compile_backend
 
     conf = Path(__file__).resolve().parents[2] / "conf"
@@ -114,7 +109,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
 
     dev = torch.device(device)
-    sync = _sync(dev)
+    sync = device_sync(dev)
     model = build(cfg.model, init=pts.to(dev), n_frames=BENCH_FRAMES if dynamic else 1).to(dev)
     rasterizer = build(cfg.rasterizer)
     loss_fn = build(cfg.loss)
@@ -156,7 +151,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
            "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals), "device": dev.type}
     row["backbone_ms"] = _backbone_ms(model, iters, sync) if has_field(cfg) else None
     row.update(_flops(model, cam, has_field(cfg)))
-    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup, sync)
+    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup, bg, sync)
     row["generator_ms"] = row["split"]["generator_fwd"] + row["split"]["generator_bwd"] if has_field(cfg) else None
     model.eval()
     with torch.no_grad():
@@ -170,7 +165,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
             rasterizer.render(baked, fcam, bg)
         sync()
         row["fps_baked"] = reps / (time.perf_counter() - t0)
-    row["peak_mem_mb"] = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else _rss_peak_mb()
+    row["peak_mem_mb"] = peak_memory_mb(dev) if dev.type == "cuda" else _rss_peak_mb()
     return row
 
 
@@ -219,12 +214,12 @@ def flop_floor(row: dict, peaks: dict) -> float:
     return floor_ms(gen, gen_peaks) + floor_ms(heads, heads_peaks)
 
 
-def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int,
+def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int, bg,
            sync: Callable[[], None] = lambda: None) -> dict[str, float]:
     """Median ms of each part of a training step (``SPLIT``), timed with autograd hooks: the
     rasterizer's backward ends when the first splat attribute receives its gradient, the heads'
-    backward when the planes receive theirs. ``sync`` runs before every mark (CUDA: the GPU's
-    queued work is counted where it was launched)."""
+    backward when the planes receive theirs. ``bg``: [3] background on the model's device. ``sync``
+    runs before every mark (CUDA: the GPU's queued work is counted where it was launched)."""
     import torch
 
     from src.trainer.trainer import Trainer  # noqa: F401 - same import state as the timed step
@@ -259,7 +254,7 @@ def _split(model, view, rasterizer, loss_fn, optimizer, iters: int, warmup: int,
                     v.register_hook(mark("attrs"))
         if torch.is_tensor(state) and state.requires_grad:
             state.register_hook(mark("planes"))
-        renders = [rasterizer.render(s, view.camera, torch.ones(3, device=s.means.device)) for s in splats]
+        renders = [rasterizer.render(s, view.camera, bg) for s in splats]
         loss_fn(renders, [view], splats, iteration=it)["total"].backward()
         sync()
         t3 = time.perf_counter()
