@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -333,6 +334,25 @@ def test_surfel_loss_adds_its_terms_from_their_iterations():
     plain = TorchRefRasterizer().render(s, cam)
     with pytest.raises(TypeError, match="surfels=true"):
         loss([plain], [view], [s], iteration=0)
+
+
+def test_surfel_loss_weighs_each_distortion_form_with_its_own_weight():
+    """gsplat's L1 raw-depth distortion (``distortion_form="depth_l1"``) takes ``lambda_dist_l1``, the
+    reference's squared NDC form ``lambda_dist``; a mixed batch averages the weighted terms."""
+    s = random_scene(30, seed=1, dtype=F64, spread=0.3, scale_range=(0.1, 0.3))
+    cam = random_camera(20, 16, seed=0, dtype=F64)
+    ndc = render_surfels_ref(s, cam)
+    l1 = dataclasses.replace(ndc, distortion=ndc.distortion * 7.0, distortion_form="depth_l1")
+    view = _View(cam, torch.rand(16, 20, 3, dtype=F64))
+    loss = SurfelLoss(lambda_dist=1000.0, lambda_dist_l1=0.5, lambda_normal=0.0, dist_from=0)
+    base = SurfelLoss(lambda_dist=0.0, lambda_dist_l1=0.0, lambda_normal=0.0)([ndc], [view], [s])["total"]
+    d = float(ndc.distortion.mean())
+    assert d > 0
+    assert float(loss([ndc], [view], [s])["total"] - base) == pytest.approx(1000.0 * d, rel=1e-10)
+    assert float(loss([l1], [view], [s])["total"] - base) == pytest.approx(0.5 * 7.0 * d, rel=1e-10)
+    mixed = loss([ndc, l1], [view, view], [s, s])
+    assert float(mixed["total"] - base) == pytest.approx((1000.0 * d + 0.5 * 7.0 * d) / 2, rel=1e-10)
+    assert float(mixed["dist"]) == pytest.approx((d + 7.0 * d) / 2, rel=1e-10)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -64,7 +64,8 @@ def test_gsplat_surfels_match_reference():
 @cuda
 @pytest.mark.cuda
 def test_gsplat_gradients_point_the_same_way_as_the_reference():
-    """The colour loss's gradients with respect to the splat means and colours: cosine > 0.9."""
+    """The colour loss's gradients with respect to the splat means, the colours and the projected centres
+    (``means2d.grad``, what adaptive density control reads): cosine > 0.9."""
     pytest.importorskip("gsplat")
     from src.rasterizer.gsplat_backend import GsplatRasterizer
 
@@ -76,21 +77,21 @@ def test_gsplat_gradients_point_the_same_way_as_the_reference():
         colors = s.colors.clone().requires_grad_(True)
         out = rast.render(type(s)(means=means, scales=s.scales, quats=s.quats, opacities=s.opacities,
                                   colors=colors), cam.to(dev), torch.ones(3, device=dev))
+        out.means2d.retain_grad()
         (out.color - 0.5).square().mean().backward()
-        grads.append((means.grad.cpu().flatten(), colors.grad.cpu().flatten()))
+        assert out.means2d.grad is not None, f"{rast.name}: no view-space gradient, nothing would densify"
+        grads.append((means.grad.cpu().flatten(), colors.grad.cpu().flatten(), out.means2d.grad.cpu().flatten()))
     for a, b in zip(*grads, strict=True):
         assert torch.nn.functional.cosine_similarity(a, b, dim=0) > 0.9
 
 
-def test_auto_on_cuda_without_gsplat_or_with_surfels_uses_the_reference(monkeypatch):
-    """On CUDA the compiled kernel (CPU-only) is never picked: surfels and a missing gsplat take torch_ref."""
+def test_auto_on_cuda_without_gsplat_uses_the_reference(monkeypatch):
+    """On CUDA the compiled kernel (CPU-only) is never picked: a missing gsplat takes torch_ref."""
     import builtins
 
     from src.rasterizer.auto import auto_rasterizer
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    surf = auto_rasterizer(surfels=True)
-    assert isinstance(surf, TorchRefRasterizer) and surf.surfels
     real_import = builtins.__import__
 
     def no_gsplat(name, *args, **kwargs):
@@ -101,6 +102,19 @@ def test_auto_on_cuda_without_gsplat_or_with_surfels_uses_the_reference(monkeypa
     monkeypatch.setattr(builtins, "__import__", no_gsplat)
     rast = auto_rasterizer(antialiased=True)
     assert isinstance(rast, TorchRefRasterizer) and rast.antialiased
+    surf = auto_rasterizer(surfels=True)
+    assert isinstance(surf, TorchRefRasterizer) and surf.surfels
+
+
+def test_auto_on_cuda_renders_surfels_with_gsplat(monkeypatch):
+    """2D surfels on CUDA take gsplat's 2DGS path (a stand-in gsplat module here)."""
+    from src.rasterizer.auto import auto_rasterizer
+    from src.rasterizer.gsplat_backend import GsplatRasterizer
+
+    _fake_gsplat(monkeypatch)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    surf = auto_rasterizer(surfels=True, device="cuda:0")
+    assert isinstance(surf, GsplatRasterizer) and surf.surfels
 
 
 def test_auto_follows_the_runs_device(monkeypatch):
@@ -110,7 +124,7 @@ def test_auto_follows_the_runs_device(monkeypatch):
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert isinstance(auto_rasterizer(device="cpu"), CpuRasterizer)
-    assert isinstance(auto_rasterizer(surfels=True, device="cuda:0"), TorchRefRasterizer)
+    assert isinstance(auto_rasterizer(surfels=True, device="cpu"), CpuRasterizer)
 
 
 def _fake_gsplat(monkeypatch) -> dict:
@@ -177,3 +191,5 @@ def test_the_gsplat_wrappers_hand_the_view_space_gradient_to_means2d(monkeypatch
     source = seen["gradient_2dgs" if surfels else "means2d"]
     assert out.means2d.is_leaf and out.means2d.grad is not None and out.means2d.grad.shape == (20, 2)
     assert out.means2d.grad.abs().sum() > 0 and torch.equal(out.means2d.grad, source.grad[0])
+    if surfels:  # gsplat's distortion map is its L1 raw-depth form, weighted by loss.lambda_dist_l1
+        assert out.distortion_form == "depth_l1"

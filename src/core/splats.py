@@ -93,9 +93,13 @@ class SurfelRenderOutput(RenderOutput):
     Attributes:
         normals: [H, W, 3] accumulated world-frame surfel normals sum_i n_i * alpha_i * T_i (not
             normalised; each n_i is oriented towards the camera).
-        distortion: [H, W] depth distortion sum_{j<i} w_i w_j (m_i - m_j)^2 of the NDC-mapped
+        distortion: [H, W] depth distortion: by default sum_{j<i} w_i w_j (m_i - m_j)^2 of the NDC-mapped
             intersection depths m (2DGS Eq. 13, as its reference code evaluates it).
+        distortion_form: which distortion ``distortion`` holds: ``"ndc_squared"`` (above; the CPU kernel
+            and torch_ref) or ``"depth_l1"`` (sum w_i w_j |z_i - z_j| of raw camera depths, gsplat's
+            2DGS kernel). The two differ by orders of magnitude, so each has its own loss weight.
     """
 
     normals: Tensor
     distortion: Tensor
+    distortion_form: str = "ndc_squared"

@@ -57,7 +57,10 @@ class SurfelLoss(SplatLoss):
     """eq. A.2 (:class:`SplatLoss`) + lambda_dist L_d (2DGS Eq. 13) + lambda_normal L_n (2DGS Eq. 14).
 
     Args:
-        lambda_dist: weight of the depth distortion (2DGS: 1000 for bounded / object scenes, 100 unbounded).
+        lambda_dist: weight of the depth distortion in the 2DGS reference's squared NDC-depth form (2DGS:
+            1000 for bounded / object scenes, 100 unbounded).
+        lambda_dist_l1: weight of the distortion in gsplat's L1 raw-depth form (renders with
+            ``distortion_form="depth_l1"``; gsplat's own 2DGS trainer uses 1e-3).
         lambda_normal: weight of the normal consistency (2DGS: 0.05).
         dist_from / normal_from: the terms act from these (0-based) iterations on (2DGS reference: after
             iteration 3 000 / 7 000).
@@ -65,9 +68,10 @@ class SurfelLoss(SplatLoss):
     """
 
     def __init__(self, lambda_dist: float = 1000.0, lambda_normal: float = 0.05, dist_from: int = 3000,
-                 normal_from: int = 7000, **kwargs) -> None:
+                 normal_from: int = 7000, lambda_dist_l1: float = 1e-3, **kwargs) -> None:
         super().__init__(**kwargs)
         self.lambda_dist = float(lambda_dist)
+        self.lambda_dist_l1 = float(lambda_dist_l1)
         self.lambda_normal = float(lambda_normal)
         self.dist_from = int(dist_from)
         self.normal_from = int(normal_from)
@@ -75,17 +79,19 @@ class SurfelLoss(SplatLoss):
     def __call__(self, renders: list[RenderOutput], views: list[View], splats: list[Splats],
                  iteration: int = 0) -> dict[str, Tensor]:
         """Loss terms of :class:`SplatLoss` plus 'dist' and 'normal' once they act, and 'total'."""
-        if (self.lambda_dist > 0 or self.lambda_normal > 0) and not all(
+        dist_on = self.lambda_dist > 0 or self.lambda_dist_l1 > 0
+        if (dist_on or self.lambda_normal > 0) and not all(
                 isinstance(r, SurfelRenderOutput) for r in renders):
             raise TypeError("the 2DGS losses need surfel renders (normals, distortion): set rasterizer.surfels=true "
                             "(+experiment=gs2d does)")
         terms = super().__call__(renders, views, splats, iteration=iteration)
         total = terms["total"]
         n = len(renders)
-        if self.lambda_dist > 0 and iteration >= self.dist_from:
-            d = sum(r.distortion.mean() for r in renders) / n
-            terms["dist"] = d
-            total = total + self.lambda_dist * d
+        if dist_on and iteration >= self.dist_from:
+            weights = {"ndc_squared": self.lambda_dist, "depth_l1": self.lambda_dist_l1}
+            weighted = [(weights[r.distortion_form], r.distortion.mean()) for r in renders]
+            terms["dist"] = sum(d for _, d in weighted) / n
+            total = total + sum(w * d for w, d in weighted) / n
         if self.lambda_normal > 0 and iteration >= self.normal_from:
             nc = sum(normal_consistency(r, v.camera) for r, v in zip(renders, views, strict=True)) / n
             terms["normal"] = nc

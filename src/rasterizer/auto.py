@@ -15,9 +15,9 @@ def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: 
                     device: str = "auto") -> Rasterizer:
     """gsplat on CUDA, the compiled ``cpu`` kernel otherwise, ``torch_ref`` (slow) as a last resort.
 
-    On CUDA, 2D surfels and a missing gsplat fall back to ``torch_ref`` on the GPU (the compiled kernel
-    is CPU-only): gsplat's 2DGS path renders as the reference does but trains the 2DGS baseline to a
-    far lower PSNR (docs/baselines.md, "2DGS on CUDA"); ``rasterizer=gsplat`` still forces it.
+    On CUDA without gsplat the fallback is ``torch_ref`` on the GPU (the compiled kernel is CPU-only).
+    2D surfels take gsplat's 2DGS path there too; its distortion map has its own loss weight
+    (``loss.lambda_dist_l1``, docs/baselines.md, "2DGS on CUDA").
 
     Args:
         antialiased: Mip-Splatting's 2D Mip filter instead of 3DGS's dilation (every backend).
@@ -31,10 +31,6 @@ def auto_rasterizer(antialiased: bool = False, filter_2d: float = 0.1, surfels: 
     aa = {"antialiased": antialiased, "filter_2d": filter_2d, "surfels": surfels}
     on_cuda = torch.cuda.is_available() if device == "auto" else str(device).startswith("cuda")
     if on_cuda:
-        if surfels:
-            log.warning("2D surfels on CUDA: using torch_ref on the GPU (gsplat's 2DGS path is not validated "
-                        "for training; rasterizer=gsplat forces it)")
-            return TorchRefRasterizer(**aa)
         try:
             from src.rasterizer.gsplat_backend import GsplatRasterizer
 

@@ -7,8 +7,9 @@ Differences from the CPU backends (:mod:`src.rasterizer.surfel_ref`), not reconc
 * depth: gsplat composites the surfel centres' camera depths ("RGB+ED"; normalised by alpha, multiplied
   back by alpha here so ``depth`` is sum z alpha T like the other backends), not the ray-splat
   intersection depths;
-* distortion: gsplat's map is the L1 form sum w_i w_j |z_i - z_j| of its depths (its documentation),
-  not the squared NDC-depth form of the 2DGS reference code;
+* distortion: gsplat's map is the L1 form sum w_i w_j |z_i - z_j| of its raw camera depths, not the
+  squared NDC-depth form of the 2DGS reference code; the render says so (``distortion_form="depth_l1"``)
+  and :class:`~src.losses.surfel.SurfelLoss` weighs it with its own ``lambda_dist_l1``;
 * the low-pass filter, tile rule and alpha rules are gsplat's.
 
 ``means2d`` is a leaf tensor whose ``.grad``, after the backward, holds gsplat's 2DGS densification
@@ -60,4 +61,4 @@ def render_surfels_gsplat(splats: Splats, camera: Camera, background: Tensor | N
     # [N, 2] leaf of the projected centres; its .grad: gsplat's 2DGS densification gradient (camera 0)
     means2d = gradient_leaf(meta["means2d"], meta.get("gradient_2dgs"))
     return SurfelRenderOutput(color=color, alpha=alpha, depth=depth, means2d=means2d, radii=radii.to(torch.int32),
-                              normals=normals[0], distortion=distort[0, ..., 0])
+                              normals=normals[0], distortion=distort[0, ..., 0], distortion_form="depth_l1")
