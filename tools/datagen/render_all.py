@@ -2,6 +2,7 @@
 
     .venv-datagen/bin/python tools/datagen/render_all.py [--only static/plant ...] [--out data]
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/totem heldout/teaset --out /tmp/heldout
+    .venv-datagen/bin/python tools/datagen/render_all.py --only static/plant --res 200 --out /tmp/data200
 
 Use tools/datagen/generate.sh for the full, one-command regeneration.
 """
@@ -45,7 +46,16 @@ def main(argv=None):
     ap.add_argument("--limit", type=int, default=None, help="debug: at most this many views per split")
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--stats", type=Path, default=None, help="write per-job timings as JSON here")
+    ap.add_argument("--res", type=int, default=None,
+                    help="image width = height in px (default: common.RES, the shipped data's 100); the cameras keep "
+                         "their field of view, so the focal length in px scales with it")
     args = ap.parse_args(argv)
+    if args.res is not None:
+        if args.res < 8:
+            ap.error(f"--res {args.res}: expected an image size of at least 8 px")
+        import common
+
+        common.RES = args.res
     if args.list:
         print("\n".join([*JOBS, *(f"{n}  (held out: only when named)" for n in HELDOUT_JOBS)]))
         return
