@@ -53,6 +53,9 @@ def test_auto_first_stage_equals_the_cli_first_stage_and_is_reused(tmp_path, sce
     assert stored["model"].endswith("GaussianSplatModel")
     with pytest.raises(ValueError, match=r"model: .*GaussianSplatModel != .*MipGaussianSplatModel"):
         check_first_stage(auto_dir, {**stored, "model": "src.models.mip_splatting.MipGaussianSplatModel"})
+    # ... and so is one trained on renders of the scene at another resolution
+    with pytest.raises(ValueError, match=r"image_size: \[\d+, \d+\] != \[200, 200\]"):
+        check_first_stage(auto_dir, {**stored, "image_size": [200, 200]})
 
 
 def test_first_stage_off_names_the_command(tmp_path, scene_root):

@@ -61,10 +61,13 @@ def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
 
     ``model`` is the first stage's model class (``stage1.model._target_``): a first stage of another
     model (e.g. ``model@stage1.model=mip_splatting``) in the same directory is refused, not re-used.
+    ``image_size`` [W, H] of the first training view: renders of the same scene at another resolution
+    share its name, and so its cache directory.
     """
+    cam = scene.train[0].camera
     return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
             "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points),
-            "model": str(cfg.stage1.model.get("_target_"))}
+            "model": str(cfg.stage1.model.get("_target_")), "image_size": [int(cam.width), int(cam.height)]}
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
