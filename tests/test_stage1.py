@@ -74,7 +74,8 @@ def test_first_stage_config_mirrors_the_gs3d_experiment():
     with initialize_config_module("conf", version_base="1.3"):
         gs = compose("config", overrides=["+experiment=gs3d_stage1"])
         # a second-stage-only setting leaves the first stage (and so its cache) as it is
-        for extra in ([], ["trainer.random_background=true"], ["trainer.views_per_step=4"]):
+        for extra in ([], ["trainer.random_background=true"], ["trainer.views_per_step=4"],
+                      ["loss.lambda_moran=0.5", "loss.lambda_norm=0.2"]):
             c1 = first_stage_config(compose("config", overrides=["+experiment=splatfields3d_2stage", *extra]))
             for key in ("model", "optim", "strategy", "init", "loss", "method", "trainer"):
                 mine, theirs = (OmegaConf.to_container(OmegaConf.select(c, key), resolve=True) if key != "method"

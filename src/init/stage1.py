@@ -35,9 +35,9 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
     Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
-    ``protocol=two_stage_mip``): L_norm and L_Moran off, ``stage1.iterations``, the scene's own
-    background and one view per step (``trainer.random_background`` and ``trainer.views_per_step`` act
-    on the second stage only, so a cached first stage is the same whichever way they are set).
+    ``protocol=two_stage_mip``): ``stage1.model`` / ``optim`` / ``strategy`` / ``init`` replace the run's,
+    ``stage1.trainer`` and ``stage1.loss`` replace keys of the run's trainer and loss (conf/protocol/two_stage.yaml:
+    one view per step, the scene's own background, L_norm and L_Moran off), for ``stage1.iterations``.
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -45,12 +45,10 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # resolved before init is replaced below
         for group in ("model", "optim", "strategy", "init"):
             c[group] = c.stage1[group]
+        for group in ("trainer", "loss"):
+            c[group] = OmegaConf.merge(c[group], c.stage1.get(group) or {})
         c.method = str(cfg.stage1.get("method", "gs3d"))
-        c.loss.lambda_norm = 0.0
-        c.loss.lambda_moran = 0.0
         c.trainer.iterations = iterations
-        c.trainer.random_background = False
-        c.trainer.views_per_step = 1  # one view per step, as gs3d / mip_splatting: the cache is the same either way
         c.capacity = None
         del c["stage1"]
     return c
