@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The project's CUDA path on a GPU machine, in one go (about 5 minutes on one H200, gsplat's first
+# The project's CUDA path on a GPU machine, in one go (about 6 minutes on one H100 or H200, gsplat's first
 # JIT build included): gsplat parity tests, smoke runs of every static and 4D method on the GPU,
 # the default command against 3DGS (full runs, wall time), the training and rasterizer benchmarks.
 #   pip install -r requirements-lock.txt -e ".[dev,cuda]"   # then:
@@ -26,6 +26,9 @@ for e in splatfields3d_mip gs3d gs3d_moran mip_splatting gs2d lightgaussian owl_
 done
 step "full run 3DGS" python -m src.run +experiment=gs3d device=cuda "hydra.run.dir=$out/gs3d"
 step "full run, the main job" python -m src.run device=cuda "hydra.run.dir=$out/main" "paths.stage1_dir=$out/stage1"
+for e in mip_splatting gs2d; do  # gs2d: gsplat's 2DGS path with its own distortion weight (loss.lambda_dist_l1)
+  step "full run $e" python -m src.run "+experiment=$e" device=cuda "hydra.run.dir=$out/$e"
+done
 step "training benchmark" python -m src.bench training --device cuda --methods gs3d,splatfields3d_mip,owl_4view \
   --sizes 10000,50000 --out "$out/training.json"
 step "rasterizer benchmark" python -m src.bench rasterizer --quick --out "$out/rasterizer.json" \
