@@ -353,6 +353,8 @@ def test_surfel_loss_weighs_each_distortion_form_with_its_own_weight():
     mixed = loss([ndc, l1], [view, view], [s, s])
     assert float(mixed["total"] - base) == pytest.approx((1000.0 * d + 0.5 * 7.0 * d) / 2, rel=1e-10)
     assert float(mixed["dist"]) == pytest.approx((d + 7.0 * d) / 2, rel=1e-10)
+    with pytest.raises(ValueError, match="unknown distortion_form"):
+        loss([dataclasses.replace(ndc, distortion_form="l2")], [view], [s])
 
 
 # ------------------------------------------------------------------------------------------------

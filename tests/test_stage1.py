@@ -58,6 +58,19 @@ def test_auto_first_stage_equals_the_cli_first_stage_and_is_reused(tmp_path, sce
         check_first_stage(auto_dir, {**stored, "image_size": [200, 200]})
 
 
+def test_first_stage_nodes_may_refer_to_the_run():
+    """Interpolations inside ``stage1.trainer`` resolve against the run's config (the node is removed)."""
+    from hydra import compose, initialize_config_module
+
+    from src.init.stage1 import first_stage_config
+
+    with initialize_config_module("conf", version_base="1.3"):
+        cfg = compose("config", overrides=["+experiment=splatfields3d_mip",
+                                           "+stage1.trainer.ckpt_every=${stage1.iterations}"])
+    c1 = first_stage_config(cfg)
+    assert c1.trainer.ckpt_every == cfg.stage1.iterations and c1.trainer.views_per_step == 1
+
+
 def test_first_stage_off_names_the_command(tmp_path, scene_root):
     p = run_cli("+experiment=splatfields3d_2stage", "stage1.auto=false", f"paths.output_root={tmp_path}",
                 f"dataset.root={scene_root}", f"hydra.run.dir={tmp_path / 'sf'}", "+ci=smoke")
@@ -75,7 +88,8 @@ def test_first_stage_config_mirrors_the_gs3d_experiment():
         gs = compose("config", overrides=["+experiment=gs3d_stage1"])
         # a second-stage-only setting leaves the first stage (and so its cache) as it is
         for extra in ([], ["trainer.random_background=true"], ["trainer.views_per_step=4"],
-                      ["loss.lambda_moran=0.5", "loss.lambda_norm=0.2"]):
+                      ["loss.lambda_moran=0.5", "loss.lambda_norm=0.2"],
+                      ["trainer.views_per_step=4", "~stage1.trainer", "~stage1.loss"]):
             c1 = first_stage_config(compose("config", overrides=["+experiment=splatfields3d_2stage", *extra]))
             for key in ("model", "optim", "strategy", "init", "loss", "method", "trainer"):
                 mine, theirs = (OmegaConf.to_container(OmegaConf.select(c, key), resolve=True) if key != "method"

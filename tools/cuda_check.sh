@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The project's CUDA path on a GPU machine, in one go (about 6 minutes on one H100 or H200, gsplat's first
 # JIT build included): gsplat parity tests, smoke runs of every static and 4D method on the GPU,
-# the default command against 3DGS (full runs, wall time), the training and rasterizer benchmarks.
+# the default command against 3DGS, Mip-Splatting and 2DGS (full runs, wall time), the training and rasterizer
+# benchmarks.
 #   pip install -r requirements-lock.txt -e ".[dev,cuda]"   # then:
 #   bash tools/cuda_check.sh [OUT_DIR]                      # default outputs/cuda_check
 # Each step's failure is reported and the next step runs; the exit code counts the failed steps.

@@ -31,13 +31,21 @@ from src.utils.seed import seed_everything
 
 log = logging.getLogger(__name__)
 
+# What a first stage never inherits from its second stage, whatever the config's ``stage1.trainer`` /
+# ``stage1.loss`` nodes say (they are merged over these): one view per step and the scene's own
+# background (second-stage settings: a cached first stage stays the same whichever way they are set),
+# L_norm and L_Moran off (as +experiment=gs3d).
+FIRST_STAGE_OVERRIDES = {"trainer": {"views_per_step": 1, "random_background": False},
+                         "loss": {"lambda_norm": 0.0, "lambda_moran": 0.0}}
+
+
 def first_stage_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
     Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
-    ``protocol=two_stage_mip``): ``stage1.model`` / ``optim`` / ``strategy`` / ``init`` replace the run's,
-    ``stage1.trainer`` and ``stage1.loss`` replace keys of the run's trainer and loss (conf/protocol/two_stage.yaml:
-    one view per step, the scene's own background, L_norm and L_Moran off), for ``stage1.iterations``.
+    ``protocol=two_stage_mip``): ``stage1.model`` / ``optim`` / ``strategy`` / ``init`` replace the run's;
+    :data:`FIRST_STAGE_OVERRIDES`, then the (resolved) ``stage1.trainer`` and ``stage1.loss`` nodes
+    (conf/protocol/two_stage.yaml), replace keys of the run's trainer and loss; ``stage1.iterations``.
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -45,8 +53,10 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.stage1.init.n_points = int(cfg.stage1.init.n_points)  # resolved before init is replaced below
         for group in ("model", "optim", "strategy", "init"):
             c[group] = c.stage1[group]
-        for group in ("trainer", "loss"):
-            c[group] = OmegaConf.merge(c[group], c.stage1.get(group) or {})
+        for group in ("trainer", "loss"):  # resolved here: the stage1 node is gone below
+            node = cfg.stage1.get(group)
+            node = OmegaConf.to_container(node, resolve=True) if node is not None else {}
+            c[group] = OmegaConf.merge(c[group], FIRST_STAGE_OVERRIDES[group], node)
         c.method = str(cfg.stage1.get("method", "gs3d"))
         c.trainer.iterations = iterations
         c.capacity = None

@@ -83,12 +83,16 @@ class SurfelLoss(SplatLoss):
         if (dist_on or self.lambda_normal > 0) and not all(
                 isinstance(r, SurfelRenderOutput) for r in renders):
             raise TypeError("the 2DGS losses need surfel renders (normals, distortion): set rasterizer.surfels=true "
-                            "(+experiment=gs2d does)")
+                            "(+experiment=gs2d does), or turn them off with loss.lambda_dist=0 loss.lambda_dist_l1=0 "
+                            "loss.lambda_normal=0")
         terms = super().__call__(renders, views, splats, iteration=iteration)
         total = terms["total"]
         n = len(renders)
         if dist_on and iteration >= self.dist_from:
             weights = {"ndc_squared": self.lambda_dist, "depth_l1": self.lambda_dist_l1}
+            unknown = {r.distortion_form for r in renders} - weights.keys()
+            if unknown:
+                raise ValueError(f"unknown distortion_form {sorted(unknown)}; expected one of {sorted(weights)}")
             weighted = [(weights[r.distortion_form], r.distortion.mean()) for r in renders]
             terms["dist"] = sum(d for _, d in weighted) / n
             total = total + sum(w * d for w, d in weighted) / n

@@ -47,14 +47,18 @@ def main(argv=None):
     ap.add_argument("--list", action="store_true")
     ap.add_argument("--stats", type=Path, default=None, help="write per-job timings as JSON here")
     ap.add_argument("--res", type=int, default=None,
-                    help="image width = height in px (default: common.RES, the shipped data's 100); the cameras keep "
-                         "their field of view, so the focal length in px scales with it")
+                    help="image width = height in px of the static, held-out and dynamic scenes (default: common.RES, "
+                         "the shipped data's 100; the DTU-format job keeps its own size); the cameras keep their "
+                         "field of view, so the focal length in px scales with it. Needs --out: never over the "
+                         "shipped data")
     args = ap.parse_args(argv)
     if args.res is not None:
-        if args.res < 8:
-            ap.error(f"--res {args.res}: expected an image size of at least 8 px")
         import common
 
+        if args.res < 8:
+            ap.error(f"--res {args.res}: expected an image size of at least 8 px")
+        if args.res != common.RES and args.out.resolve() == (HERE.parent.parent / "data").resolve():
+            ap.error(f"--res {args.res}: name an --out directory; data/ holds the shipped {common.RES} px scenes")
         common.RES = args.res
     if args.list:
         print("\n".join([*JOBS, *(f"{n}  (held out: only when named)" for n in HELDOUT_JOBS)]))
