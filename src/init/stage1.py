@@ -31,8 +31,8 @@ from src.utils.seed import seed_everything
 
 log = logging.getLogger(__name__)
 
-# What a first stage never inherits from its second stage, whatever the config's ``stage1.trainer`` /
-# ``stage1.loss`` nodes say (they are merged over these): one view per step and the scene's own
+# What a first stage does not inherit from its second stage (the config's ``stage1.trainer`` /
+# ``stage1.loss`` nodes are merged over these, and may change them): one view per step and the scene's own
 # background (second-stage settings: a cached first stage stays the same whichever way they are set),
 # L_norm and L_Moran off (as +experiment=gs3d).
 FIRST_STAGE_OVERRIDES = {"trainer": {"views_per_step": 1, "random_background": False},
