@@ -56,6 +56,11 @@ def test_auto_first_stage_equals_the_cli_first_stage_and_is_reused(tmp_path, sce
     # ... and so is one trained on renders of the scene at another resolution
     with pytest.raises(ValueError, match=r"image_size: \[\d+, \d+\] != \[200, 200\]"):
         check_first_stage(auto_dir, {**stored, "image_size": [200, 200]})
+    # ... also when the command line wrote it (+experiment=gs3d_stage1): every run records its image size
+    assert json.loads((cli_dir / "metrics.json").read_text())["image_size"] == stored["image_size"]
+    assert check_first_stage(cli_dir, stored) is not None
+    with pytest.raises(ValueError, match=r"image_size: \[\d+, \d+\] != \[200, 200\]"):
+        check_first_stage(cli_dir, {**stored, "image_size": [200, 200]})
 
 
 def test_first_stage_nodes_may_refer_to_the_run():

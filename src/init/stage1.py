@@ -72,10 +72,15 @@ def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
     ``image_size`` [W, H] of the first training view: renders of the same scene at another resolution
     share its name, and so its cache directory.
     """
-    cam = scene.train[0].camera
     return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
             "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points),
-            "model": str(cfg.stage1.model.get("_target_")), "image_size": [int(cam.width), int(cam.height)]}
+            "model": str(cfg.stage1.model.get("_target_")), "image_size": training_image_size(scene)}
+
+
+def training_image_size(scene: Scene) -> list[int]:
+    """[W, H] in pixels of the scene's first training view (every run records it as ``image_size``)."""
+    cam = scene.train[0].camera
+    return [int(cam.width), int(cam.height)]
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
@@ -87,8 +92,8 @@ def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
         return None
     rec = read_json(run_dir / "metrics.json") or {}
     keys = rec.get("stage1_keys")
-    if keys is None:  # written by `+experiment=gs3d_stage1` on the command line
-        keys = {**rec.get("keys", {}), "n_points": None}
+    if keys is None:  # written by `+experiment=gs3d_stage1` on the command line (its size: every run's record)
+        keys = {**rec.get("keys", {}), "n_points": None, "image_size": rec.get("image_size")}
     diff = {k: (keys.get(k), v) for k, v in expected.items() if keys.get(k) is not None and keys.get(k) != v}
     if diff:
         raise ValueError(f"{run_dir} holds a first stage trained with other settings "
