@@ -34,14 +34,23 @@ step "training benchmark" python -m src.bench training --device cuda --methods g
   --sizes 10000,50000 --out "$out/training.json"
 step "rasterizer benchmark" python -m src.bench rasterizer --quick --out "$out/rasterizer.json" \
   --chart "$out/rasterizer.png"
-python - "$out" <<'PY'
+# The full runs' test PSNR against the CPU kernel's on the same scene and seed (docs/benchmarks.md, "On CUDA"):
+# more than 1 dB below it counts as a failed step.
+python - "$out" <<'PY' || failed=$((failed + $?))
 import json, sys
 from pathlib import Path
+CPU_PSNR = {"gs3d": 19.64, "main": 20.13, "mip_splatting": 20.38, "gs2d": 17.93}
+low = 0
 for p in sorted(Path(sys.argv[1]).glob("*/metrics.json")):
     m = json.loads(p.read_text())
     mt = m.get("metrics", {})
+    psnr, ref = mt.get("psnr"), CPU_PSNR.get(p.parent.name)
+    flag = ""
+    if ref is not None and (m.get("status") != "ok" or psnr is None or psnr < ref - 1.0):
+        flag, low = f"  <-- more than 1 dB below the CPU run's {ref:.2f}", low + 1
     print(f"{p.parent.name:<28} {m.get('status'):<8} {m.get('rasterizer') or '-':<10} wall {m.get('wall_s') or 0:7.1f} s"
-          f"  PSNR {mt.get('psnr') or float('nan'):6.2f}  {m.get('error') or ''}")
+          f"  PSNR {psnr or float('nan'):6.2f}  {m.get('error') or ''}{flag}")
+sys.exit(low)
 PY
 echo "failed steps: $failed"
 exit "$failed"
