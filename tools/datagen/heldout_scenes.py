@@ -1,9 +1,12 @@
-"""Held-out static scenes: rendered on demand, never shipped, never used to choose a setting.
+"""Static scenes beyond the shipped ones: rendered on demand, never shipped.
 
 They stand in for "a scene the project has never seen": the same camera rig, resolution and layout as
 the shipped static scenes (``static_scenes.render_static``), different objects, materials and lights.
+``totem`` and ``teaset`` have since served as development scenes (their validation views took part in
+choosing the main job's second-stage protocol, docs/results.md); ``lantern`` and ``robot`` have never been
+used to choose a setting and are the held-out check.
 
-    .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/totem heldout/teaset --out /tmp/heldout
+    .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
 
 from __future__ import annotations
@@ -50,7 +53,44 @@ def build_teaset(scene):
     M.assign(tile, M.image("tile", "astronaut.png", roughness=0.4, coord="BOX", scale=(1.0, 1.0)))
 
 
+def build_lantern(scene):
+    """A striped hexagonal lantern under a cone roof with a copper ring, a spring, two photo crates and a disc."""
+    C.setup_world(scene, hdri="courtyard.exr", rot_z=1.9, sun_strength=2.8, sun_dir=(-0.3, 0.6, 0.7))
+    body = G.cylinder(radius=0.34, depth=0.8, location=(0.0, 0.0, -0.4), vertices=6)
+    M.assign(body, M.stripes("lantern_stripes", (0.95, 0.8, 0.3), (0.5, 0.1, 0.1), scale=9.0, roughness=0.35))
+    roof = G.cone(radius1=0.48, radius2=0.05, depth=0.35, location=(0.0, 0.0, 0.17), vertices=6)
+    M.assign(roof, M.voronoi("roof", (0.1, 0.25, 0.2), (0.6, 0.75, 0.5), scale=14.0))
+    ring = G.torus(major=0.12, minor=0.03, location=(0.0, 0.0, 0.45), rotation=(math.radians(90), 0.0, 0.0))
+    M.assign(ring, M.plain("ring", (0.95, 0.6, 0.4), roughness=0.2, metallic=1.0))
+    spring = G.tube(G.helix(0.1, 0.05, 6.0, n=400, center=(0.62, 0.3, -0.85)), radius=0.015, name="spring")
+    M.assign(spring, M.plain("spring", (0.2, 0.4, 0.9), roughness=0.3, coat=0.5))
+    for i, (loc, photo) in enumerate([((-0.6, 0.35, -0.72), "rocket.jpg"), ((0.3, -0.62, -0.75), "horse.png")]):
+        crate = G.cube(size=0.3, location=loc, rotation=(0.0, 0.0, 0.5 * (i + 1)))
+        M.assign(crate, M.image(f"crate{i}", photo, roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
+    disc = G.cylinder(radius=0.8, depth=0.04, location=(0.0, 0.0, -0.9), vertices=64)
+    M.assign(disc, M.checker("disc", (0.3, 0.3, 0.3), (0.85, 0.85, 0.8), scale=6.0, roughness=0.6, coord="Generated"))
+
+
+def build_robot(scene):
+    """A photo-faced box robot with a noisy head, two arms, a knot antenna, on a chessboard plinth."""
+    C.setup_world(scene, hdri="sunset.exr", rot_z=0.4, sun_strength=3.0, sun_dir=(0.6, -0.2, 0.65))
+    torso = G.cube(size=0.5, location=(0.0, 0.0, -0.4), scale=(1.0, 0.7, 1.2))
+    M.assign(torso, M.image("torso", "camera.png", roughness=0.45, coord="BOX", scale=(1.0, 1.0), tint=(0.9, 0.7, 0.5)))
+    head = G.uv_sphere(radius=0.2, location=(0.0, 0.0, 0.1))
+    M.assign(head, M.noise("head", (0.7, 0.75, 0.8), (0.2, 0.25, 0.35), scale=10.0, roughness=0.25, metallic=0.6))
+    for side in (-1.0, 1.0):
+        arm = G.cylinder(radius=0.06, depth=0.55, location=(0.36 * side, 0.0, -0.4), rotation=(0.0, 0.35 * side, 0.0))
+        M.assign(arm, M.plain(f"arm{side:+.0f}", (0.85, 0.15, 0.1), roughness=0.3))
+    antenna = G.tube(G.torus_knot(2, 5, R=0.1, r=0.04, n=400, center=(0.0, 0.0, 0.0)), radius=0.012, name="antenna")
+    antenna.location = (0.0, 0.0, 0.42)
+    M.assign(antenna, M.plain("antenna", (0.95, 0.85, 0.2), roughness=0.2, metallic=1.0))
+    plinth = G.cube(size=1.0, location=(0.0, 0.0, -0.88), scale=(1.3, 1.1, 0.08))
+    M.assign(plinth, M.image("plinth", "chessboard_RGB.png", roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
+
+
 HELDOUT_SCENES = {
     "totem": build_totem,
     "teaset": build_teaset,
+    "lantern": build_lantern,
+    "robot": build_robot,
 }
