@@ -76,6 +76,31 @@ def test_first_stage_nodes_may_refer_to_the_run():
     assert c1.trainer.ckpt_every == cfg.stage1.iterations and c1.trainer.views_per_step == 1
 
 
+def test_first_stage_settings_enter_the_cache_key(tmp_path):
+    """Another first-stage trainer, loss, optimiser or density control is another cache; second-stage
+    settings (its iterations, views per step) are not."""
+    from hydra import compose, initialize_config_module
+
+    from src.init.stage1 import settings_digest
+
+    with initialize_config_module("conf", version_base="1.3"):
+        def digest(*extra):
+            return settings_digest(compose("config", overrides=["+experiment=splatfields3d_mip", *extra]))
+
+        base = digest()
+        assert digest("schedule.two_stage_mip_stop_at=1500", "schedule.two_stage_mip_views_per_step=1",
+                      "schedule.stage2_iterations=500", "seed=1") == base
+        changed = [digest("+stage1.trainer.random_background=true"), digest("+stage1.loss.lambda_dssim=0.5"),
+                   digest("strategy@stage1.strategy=none"), digest("stage1.optim.lr.opacities.init=0.1")]
+        assert base not in changed and len(set(changed)) == len(changed)
+    stored = {"scene": "s", "n_views": 4, "seed": 0, "iterations": 20, "n_points": 300, "settings": base}
+    (tmp_path / "splats.ply").write_text("")
+    (tmp_path / "metrics.json").write_text(json.dumps({"stage1_keys": stored}))
+    assert check_first_stage(tmp_path, stored) is not None
+    with pytest.raises(ValueError, match=f"settings: {base} != {changed[0]}"):
+        check_first_stage(tmp_path, {**stored, "settings": changed[0]})
+
+
 def test_first_stage_off_names_the_command(tmp_path, scene_root):
     p = run_cli("+experiment=splatfields3d_2stage", "stage1.auto=false", f"paths.output_root={tmp_path}",
                 f"dataset.root={scene_root}", f"hydra.run.dir={tmp_path / 'sf'}", "+ci=smoke")

@@ -14,6 +14,8 @@ renames it into place when done, the others wait and read it.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import shutil
@@ -70,11 +72,27 @@ def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
     ``model`` is the first stage's model class (``stage1.model._target_``): a first stage of another
     model (e.g. ``model@stage1.model=mip_splatting``) in the same directory is refused, not re-used.
     ``image_size`` [W, H] of the first training view: renders of the same scene at another resolution
-    share its name, and so its cache directory.
+    share its name, and so its cache directory. ``settings``: :func:`settings_digest`.
     """
     return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
             "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points),
-            "model": str(cfg.stage1.model.get("_target_")), "image_size": training_image_size(scene)}
+            "model": str(cfg.stage1.model.get("_target_")), "image_size": training_image_size(scene),
+            "settings": settings_digest(cfg)}
+
+
+def settings_digest(cfg: DictConfig) -> str:
+    """A 12-digit digest of the first stage's optimiser and density control and of the ``stage1.trainer`` /
+    ``stage1.loss`` nodes, resolved as the first stage sees them (its learning-rate horizon is its own
+    iteration count, not the second stage's).
+
+    A first stage trained with other settings (e.g. ``+stage1.trainer.random_background=true``) has another
+    digest and is refused, not re-used; caches written without a digest are not checked.
+    """
+    c1 = first_stage_config(cfg)
+    nodes = {"optim": c1.optim, "strategy": c1.strategy,
+             **{g: cfg.stage1.get(g) for g in ("trainer", "loss")}}
+    nodes = {g: OmegaConf.to_container(n, resolve=True) if n is not None else None for g, n in nodes.items()}
+    return hashlib.sha1(json.dumps(nodes, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
 def training_image_size(scene: Scene) -> list[int]:
