@@ -42,6 +42,16 @@ if not OmegaConf.has_resolver("half"):  # narrow heads are half the width of the
     OmegaConf.register_new_resolver("half", lambda w: max(8, int(w) // 2))
 
 
+def if_at_most(n: int | None, limit: int, then, otherwise):
+    """``then`` when ``n`` (e.g. the training view count; None = all views) is at most ``limit``, else
+    ``otherwise``: settings that differ between the sparsest and denser view counts."""
+    return then if n is not None and int(n) <= int(limit) else otherwise
+
+
+if not OmegaConf.has_resolver("if_at_most"):
+    OmegaConf.register_new_resolver("if_at_most", if_at_most)
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` -> cuda if available else cpu; otherwise the named device (``cpu``, ``cuda``, ``cuda:N``),
     which must exist here (:class:`ConfigValueError` naming ``device`` otherwise)."""

@@ -124,10 +124,17 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     assert cli.model.network.backbone.n_up_blocks == 3
     assert mip.init.run_dir.endswith("/mip_views4_it1500_seed0")
     assert plain.init.run_dir.endswith("/views4_it1500_seed0") and "mip_" not in plain.init.run_dir
-    # the main job's second stage (scale=cpu): 4 views per step, stopped at 600 iterations on the network
-    # LR schedule of a full 1 500-iteration second stage
+    # the main job's second stage (scale=cpu): stopped at 600 iterations on the network LR schedule of a
+    # full 1 500-iteration second stage; one view per step at 4 training views or fewer, 4 above
     assert (mip.trainer.iterations, plain.trainer.iterations) == (600, 1500)
-    assert (mip.trainer.views_per_step, plain.trainer.views_per_step) == (4, 1)
+    assert (mip.trainer.views_per_step, plain.trainer.views_per_step) == (1, 1)
+    for views, per_step in ((3, 1), (4, 1), (6, 4), (8, 4), (None, 4)):
+        n = "null" if views is None else views
+        assert _compose(["protocol=two_stage_mip", f"dataset.n_views={n}"]).trainer.views_per_step == per_step
+    assert _compose(["protocol=two_stage_mip", "dataset.n_views=6",
+                     "schedule.two_stage_mip_sparse_views=6"]).trainer.views_per_step == 1
+    assert _compose(["protocol=two_stage_mip", "dataset.n_views=4",
+                     "schedule.two_stage_mip_views_per_step=2"]).trainer.views_per_step == 2
     assert mip.optim.lr.network.max_steps == plain.optim.lr.network.max_steps == 1500
     early = _compose(["protocol=two_stage_mip", "schedule.two_stage_mip_stop_at=900"])
     assert (early.trainer.iterations, early.optim.lr.network.max_steps) == (900, 1500)
