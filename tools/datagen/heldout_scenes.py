@@ -2,9 +2,9 @@
 
 They stand in for "a scene the project has never seen": the same camera rig, resolution and layout as
 the shipped static scenes (``static_scenes.render_static``), different objects, materials and lights.
-``totem`` and ``teaset`` have since served as development scenes (their validation views took part in
-choosing the main job's second-stage protocol, docs/results.md); ``lantern`` and ``robot`` have never been
-used to choose a setting and are the held-out check.
+``totem`` and ``teaset`` are development scenes (their validation views take part in choosing the main
+job's second-stage protocol, docs/results.md); ``lantern`` and ``robot`` have never been used to choose a
+setting and are the held-out check.
 
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
