@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
-from src.init.stage1 import ensure_first_stage, training_image_size
+from src.init.stage1 import ensure_first_stage
 from src.io.compressed import COMPRESSED_FILE
 from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
 from src.trainer.guard import DivergenceError, DivergenceGuard
@@ -173,7 +173,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
         scene = scene.to(device)
         record["keys"]["scene"] = scene.name
         record["views"] = scene.view_ids
-        record["image_size"] = training_image_size(scene)
+        record["image_size"] = scene.image_size
         stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
         if stage1 is not None:
             record["stage1"] = stage1

@@ -91,6 +91,12 @@ class Scene:
     def is_dynamic(self) -> bool:
         return self.n_frames > 1
 
+    @property
+    def image_size(self) -> list[int]:
+        """[W, H] in pixels of the first training view (every run records it as ``image_size``)."""
+        cam = self.train[0].camera
+        return [int(cam.width), int(cam.height)]
+
     def to(self, device: torch.device | str) -> Scene:
         """Move every image, mask and camera to ``device`` (in place) and return self."""
         for views in (self.train, self.val, self.test):

@@ -76,7 +76,7 @@ def expected_keys(cfg: DictConfig, scene: Scene) -> dict:
     """
     return {"scene": scene.name, "n_views": len(scene.train), "seed": int(cfg.seed),
             "iterations": int(cfg.stage1.iterations), "n_points": int(cfg.stage1.init.n_points),
-            "model": str(cfg.stage1.model.get("_target_")), "image_size": training_image_size(scene),
+            "model": str(cfg.stage1.model.get("_target_")), "image_size": scene.image_size,
             "settings": settings_digest(cfg)}
 
 
@@ -93,12 +93,6 @@ def settings_digest(cfg: DictConfig) -> str:
              **{g: cfg.stage1.get(g) for g in ("trainer", "loss")}}
     nodes = {g: OmegaConf.to_container(n, resolve=True) if n is not None else None for g, n in nodes.items()}
     return hashlib.sha1(json.dumps(nodes, sort_keys=True, default=str).encode()).hexdigest()[:12]
-
-
-def training_image_size(scene: Scene) -> list[int]:
-    """[W, H] in pixels of the scene's first training view (every run records it as ``image_size``)."""
-    cam = scene.train[0].camera
-    return [int(cam.width), int(cam.height)]
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
