@@ -61,3 +61,9 @@ def test_missing_split_names_the_file(tmp_path, capsys):
         texture_energy(tmp_path, split="val")
     assert main([str(tmp_path)]) == 2
     assert "transforms_train.json" in capsys.readouterr().err
+
+
+def test_frame_without_file_path_names_the_field(tmp_path):
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [{"transform_matrix": np.eye(4).tolist()}]}))
+    with pytest.raises(DatasetError, match=r"frames\[0\] has no field 'file_path'"):
+        texture_energy(tmp_path)

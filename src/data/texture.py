@@ -55,7 +55,9 @@ def texture_energy(root: Path | str, split: str = "train", erode: int = 2) -> di
     if not frames:
         raise DatasetError(f"{root / f'transforms_{split}.json'}: field 'frames' is missing or empty")
     energies, fractions = [], []
-    for frame in frames:
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict) or "file_path" not in frame:
+            raise DatasetError(f"{root / f'transforms_{split}.json'}: frames[{i}] has no field 'file_path'")
         path = root / frame["file_path"]
         if not path.suffix:
             path = path.with_suffix(".png")
