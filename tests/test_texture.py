@@ -21,9 +21,14 @@ def _object(pattern: np.ndarray) -> np.ndarray:
     return rgba
 
 
+def _checker() -> np.ndarray:
+    """[32, 32] 0/1 checkerboard of 2-pixel cells."""
+    return ((np.indices((32, 32)).sum(0) // 2) % 2).astype(float)
+
+
 def test_checkerboard_scores_above_flat_and_silhouette_is_not_counted():
     flat = _object(np.full((32, 32), 0.3))
-    checker = _object(((np.indices((32, 32)).sum(0) // 2) % 2).astype(float))
+    checker = _object(_checker())
     e_flat, frac = image_texture_energy(flat)
     e_checker, _ = image_texture_energy(checker)
     assert e_flat == pytest.approx(0.0, abs=1e-12)  # the dark square's edge on white lies outside the eroded mask
@@ -43,13 +48,13 @@ def test_empty_object_and_bad_shape():
 
 def test_scene_mean_and_cli(tmp_path, capsys):
     frames = []
-    for i, pattern in enumerate([np.full((32, 32), 0.5), ((np.indices((32, 32)).sum(0) // 2) % 2).astype(float)]):
+    for i, pattern in enumerate([np.full((32, 32), 0.5), _checker()]):
         write_png(tmp_path / "train" / f"r_{i}.png", torch.from_numpy(_object(pattern)).float())
         frames.append({"file_path": f"./train/r_{i}", "transform_matrix": np.eye(4).tolist()})
     (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": frames}))
     stats = texture_energy(tmp_path)
     per_image = [image_texture_energy(_object(np.full((32, 32), 0.5)))[0],
-                 image_texture_energy(_object(((np.indices((32, 32)).sum(0) // 2) % 2).astype(float)))[0]]
+                 image_texture_energy(_object(_checker()))[0]]
     assert stats["images"] == 2
     assert stats["texture_energy"] == pytest.approx(np.mean(per_image), abs=1e-2)  # 8-bit PNG rounding
     assert main([str(tmp_path)]) == 0
@@ -64,6 +69,7 @@ def test_missing_split_names_the_file(tmp_path, capsys):
 
 
 def test_frame_without_file_path_names_the_field(tmp_path):
-    (tmp_path / "transforms_train.json").write_text(json.dumps({"frames": [{"transform_matrix": np.eye(4).tolist()}]}))
-    with pytest.raises(DatasetError, match=r"frames\[0\] has no field 'file_path'"):
+    frame = {"transform_matrix": np.eye(4).tolist()}
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": [frame]}))
+    with pytest.raises(DatasetError, match=r"frames\[0\] is missing key 'file_path'"):
         texture_energy(tmp_path)

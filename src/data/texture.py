@@ -20,11 +20,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import torch
 from scipy.ndimage import binary_erosion
 from skimage.filters import sobel
 
-from src.data.base import DatasetError, read_json
-from src.data.images import read_image
+from src.data.base import DatasetError
+from src.data.blender import load_transforms, resolve_image
+from src.data.images import composite, read_image
 
 LUMA = np.array([0.299, 0.587, 0.114])
 
@@ -36,9 +38,9 @@ def image_texture_energy(rgba: np.ndarray, erode: int = 2) -> tuple[float, float
     """
     if rgba.ndim != 3 or rgba.shape[2] != 4:
         raise ValueError(f"expected an [H, W, 4] RGBA image, got shape {tuple(rgba.shape)}")
-    alpha = rgba[..., 3]
-    rgb = rgba[..., :3] * alpha[..., None] + (1.0 - alpha[..., None])  # on white
-    luma = rgb @ LUMA  # [H, W]
+    image = torch.from_numpy(rgba)
+    rgb, alpha = (t.numpy() for t in composite(image, torch.ones(3, dtype=image.dtype)))
+    luma = rgb @ LUMA  # [H, W], on white
     mask = alpha >= 0.99
     if erode > 0:
         mask = binary_erosion(mask, iterations=erode)
@@ -50,17 +52,10 @@ def image_texture_energy(rgba: np.ndarray, erode: int = 2) -> tuple[float, float
 def texture_energy(root: Path | str, split: str = "train", erode: int = 2) -> dict[str, float]:
     """Mean over a split's images of ``image_texture_energy``: {"texture_energy", "object_fraction", "images"}."""
     root = Path(root)
-    meta = read_json(root / f"transforms_{split}.json", f"transforms_{split}.json")
-    frames = meta.get("frames")
-    if not frames:
-        raise DatasetError(f"{root / f'transforms_{split}.json'}: field 'frames' is missing or empty")
+    json_path = root / f"transforms_{split}.json"
     energies, fractions = [], []
-    for i, frame in enumerate(frames):
-        if not isinstance(frame, dict) or "file_path" not in frame:
-            raise DatasetError(f"{root / f'transforms_{split}.json'}: frames[{i}] has no field 'file_path'")
-        path = root / frame["file_path"]
-        if not path.suffix:
-            path = path.with_suffix(".png")
+    for frame in load_transforms(json_path)["frames"]:  # errors name the file and the field
+        path = resolve_image(root, frame["file_path"], json_path)
         image = read_image(path).numpy()
         if image.shape[2] != 4:
             raise DatasetError(
