@@ -2,9 +2,11 @@
 
 They stand in for "a scene the project has never seen": the same camera rig, resolution and layout as
 the shipped static scenes (``static_scenes.render_static``), different objects, materials and lights.
-``totem`` and ``teaset`` are development scenes (their validation views take part in choosing the main
-job's second-stage protocol, docs/results.md); ``lantern`` and ``robot`` have never been used to choose a
-setting and are the held-out check.
+``totem``, ``teaset``, ``mosaic`` and ``library`` are development scenes (their validation views take
+part in choosing the main job's settings, docs/results.md; ``mosaic`` and ``library`` are built with
+high-contrast checkers, stripes and text photos, so that settings for finely textured scenes can be
+chosen without them); ``lantern`` and ``robot`` have never been used to choose a setting and are the
+held-out check.
 
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
@@ -88,9 +90,51 @@ def build_robot(scene):
     M.assign(plinth, M.image("plinth", "chessboard_RGB.png", roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
 
 
+def build_mosaic(scene):
+    """A checker ball on a text-photo drum, a striped cone, a coin-photo cube, a voronoi ring and a checker slab."""
+    C.setup_world(scene, hdri="forest.exr", rot_z=4.1, sun_strength=3.0, sun_dir=(-0.4, 0.5, 0.7))
+    ball = G.uv_sphere(radius=0.3, location=(0.0, 0.0, 0.05))
+    M.assign(ball, M.checker("mosaic_ball", (0.95, 0.9, 0.8), (0.05, 0.05, 0.25), scale=8.0, roughness=0.3,
+                             coord="Generated"))
+    drum = G.cylinder(radius=0.32, depth=0.55, location=(0.0, 0.0, -0.55), vertices=48)
+    M.assign(drum, M.image("drum", "text.png", roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
+    spire = G.cone(radius1=0.16, radius2=0.0, depth=0.45, location=(0.55, 0.35, -0.62))
+    M.assign(spire, M.stripes("spire", (0.9, 0.75, 0.1), (0.1, 0.05, 0.05), scale=7.0, roughness=0.35))
+    box = G.cube(size=0.3, location=(-0.55, -0.35, -0.72), rotation=(0.0, 0.0, 0.6))
+    M.assign(box, M.image("coins", "coins.png", roughness=0.4, coord="BOX", scale=(1.5, 1.5), tint=(0.9, 0.8, 0.6)))
+    ring = G.torus(major=0.42, minor=0.05, location=(0.0, 0.0, -0.25))
+    M.assign(ring, M.voronoi("ring", (0.7, 0.1, 0.15), (0.95, 0.9, 0.85), scale=9.0))
+    slab = G.cube(size=1.0, location=(0.0, 0.0, -0.88), scale=(1.2, 1.2, 0.08))
+    M.assign(slab, M.checker("slab", (0.95, 0.9, 0.7), (0.03, 0.03, 0.05), scale=9.0, roughness=0.5, coord="Generated"))
+
+
+def build_library(scene):
+    """A striped shelf of page- and text-photo books, a cat-photo globe on a stand, a noisy vase and a checker mat."""
+    C.setup_world(scene, hdri="city.exr", rot_z=2.2, sun_strength=3.1, sun_dir=(0.4, 0.4, 0.7))
+    shelf = G.cube(size=1.0, location=(0.0, 0.25, -0.55), scale=(0.9, 0.25, 0.06))
+    M.assign(shelf, M.stripes("shelf", (0.8, 0.55, 0.3), (0.2, 0.1, 0.05), scale=8.0))
+    photos = ["page.png", "text.png", "page.png", "text.png", "page.png"]
+    tints = [(0.9, 0.8, 0.6), (0.6, 0.7, 0.9), (0.9, 0.6, 0.6), (0.7, 0.9, 0.6), (0.9, 0.9, 0.9)]
+    for i, (photo, tint) in enumerate(zip(photos, tints, strict=True)):
+        book = G.cube(size=1.0, location=(-0.34 + 0.17 * i, 0.25, -0.3), rotation=(0.0, 0.08 * (i - 2), 0.0),
+                      scale=(0.07, 0.2, 0.22 + 0.03 * (i % 3)))
+        M.assign(book, M.image(f"book{i}", photo, roughness=0.5, coord="BOX", scale=(1.0, 1.0), tint=tint))
+    globe = G.uv_sphere(radius=0.22, location=(0.1, -0.4, -0.2))
+    M.assign(globe, M.image("globe", "chelsea.png", roughness=0.4, scale=(2.0, 1.0)))
+    stand = G.cylinder(radius=0.04, depth=0.5, location=(0.1, -0.4, -0.62))
+    M.assign(stand, M.plain("stand", (0.8, 0.65, 0.3), roughness=0.25, metallic=1.0))
+    vase = G.uv_sphere(radius=0.17, location=(-0.5, -0.3, -0.68))
+    vase.scale = (1.0, 1.0, 1.4)
+    M.assign(vase, M.noise("vase", (0.1, 0.4, 0.6), (0.9, 0.85, 0.7), scale=10.0, detail=8.0, bump=0.2))
+    mat = G.cube(size=1.0, location=(0.0, 0.0, -0.9), scale=(1.25, 1.1, 0.05))
+    M.assign(mat, M.checker("mat", (0.05, 0.1, 0.3), (0.95, 0.95, 0.9), scale=8.0, roughness=0.5, coord="Generated"))
+
+
 HELDOUT_SCENES = {
     "totem": build_totem,
     "teaset": build_teaset,
     "lantern": build_lantern,
     "robot": build_robot,
+    "mosaic": build_mosaic,
+    "library": build_library,
 }
