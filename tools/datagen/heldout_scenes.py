@@ -2,11 +2,12 @@
 
 They stand in for "a scene the project has never seen": the same camera rig, resolution and layout as
 the shipped static scenes (``static_scenes.render_static``), different objects, materials and lights.
-``totem``, ``teaset``, ``mosaic`` and ``library`` are development scenes (their validation views take
-part in choosing the main job's settings, docs/results.md; ``mosaic`` and ``library`` are built with
-high-contrast checkers, stripes and text photos, so that settings for finely textured scenes can be
-chosen without them); ``lantern`` and ``robot`` have never been used to choose a setting and are the
-held-out check.
+``totem``, ``teaset``, ``mosaic``, ``library``, ``kettle`` and ``trophy`` are development scenes (their
+validation views take part in choosing the main job's settings, docs/results.md; ``mosaic`` and
+``library`` are built with high-contrast checkers, stripes and text photos, ``kettle`` and ``trophy``
+from polished metal and coated plastic, so that settings for finely textured and for strongly
+view-dependent scenes can be chosen without the held-out pair); ``lantern`` and ``robot`` have never been
+used to choose a setting and are the held-out check.
 
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
@@ -130,6 +131,43 @@ def build_library(scene):
     M.assign(mat, M.checker("mat", (0.05, 0.1, 0.3), (0.95, 0.95, 0.9), scale=8.0, roughness=0.5, coord="Generated"))
 
 
+def build_kettle(scene):
+    """A chrome kettle with a gold spout and lid knob, a glossy lacquered box, a steel spring and a brushed tray."""
+    C.setup_world(scene, hdri="interior.exr", rot_z=1.1, sun_strength=3.0, sun_dir=(0.3, -0.6, 0.7))
+    body = G.uv_sphere(radius=0.36, location=(0.0, 0.0, -0.45))
+    body.scale = (1.0, 1.0, 0.85)
+    M.assign(body, M.plain("chrome", (0.9, 0.9, 0.92), roughness=0.08, metallic=1.0))
+    spout = G.cone(radius1=0.08, radius2=0.03, depth=0.4, location=(0.42, 0.0, -0.3), rotation=(0.0, 0.9, 0.0))
+    M.assign(spout, M.plain("gold", (1.0, 0.78, 0.35), roughness=0.15, metallic=1.0))
+    knob = G.uv_sphere(radius=0.06, location=(0.0, 0.0, -0.1))
+    M.assign(knob, M.plain("knob", (1.0, 0.78, 0.35), roughness=0.15, metallic=1.0))
+    box = G.cube(size=0.28, location=(-0.55, 0.4, -0.72), rotation=(0.0, 0.0, 0.5))
+    M.assign(box, M.plain("lacquer", (0.6, 0.05, 0.08), roughness=0.1, coat=1.0))
+    spring = G.tube(G.helix(0.09, 0.05, 7.0, n=420, center=(-0.45, -0.5, -0.85)), radius=0.014, name="spring")
+    M.assign(spring, M.plain("steel", (0.8, 0.82, 0.85), roughness=0.2, metallic=1.0))
+    tray = G.cylinder(radius=0.8, depth=0.04, location=(0.0, 0.0, -0.9), vertices=64)
+    M.assign(tray, M.noise("tray", (0.75, 0.75, 0.78), (0.55, 0.55, 0.6), scale=6.0, roughness=0.3, metallic=1.0))
+
+
+def build_trophy(scene):
+    """A gold cup on a marble column, silver handles, a glass-coated blue orb, a copper wire crown and a dark plinth."""
+    C.setup_world(scene, hdri="studio.exr", rot_z=0.3, sun_strength=2.6, sun_dir=(-0.5, 0.4, 0.7))
+    cup = G.cone(radius1=0.12, radius2=0.32, depth=0.4, location=(0.0, 0.0, 0.0), vertices=48)
+    M.assign(cup, M.plain("trophy_gold", (1.0, 0.76, 0.3), roughness=0.12, metallic=1.0))
+    column = G.cylinder(radius=0.14, depth=0.7, location=(0.0, 0.0, -0.55), vertices=32)
+    M.assign(column, M.noise("marble", (0.92, 0.92, 0.9), (0.55, 0.55, 0.6), scale=4.0, roughness=0.2, bump=0.0))
+    for side in (-1.0, 1.0):
+        handle = G.torus(major=0.12, minor=0.025, location=(0.33 * side, 0.0, 0.05),
+                         rotation=(math.radians(90), 0.0, 0.0))
+        M.assign(handle, M.plain(f"silver{side:+.0f}", (0.95, 0.95, 0.97), roughness=0.1, metallic=1.0))
+    orb = G.uv_sphere(radius=0.18, location=(0.5, -0.4, -0.72))
+    M.assign(orb, M.plain("orb", (0.1, 0.25, 0.8), roughness=0.05, coat=1.0))
+    crown = G.tube(G.torus_knot(2, 7, R=0.5, r=0.05, n=500, center=(0.0, 0.0, -0.82)), radius=0.012, name="crown")
+    M.assign(crown, M.plain("crown", (0.95, 0.6, 0.4), roughness=0.15, metallic=1.0))
+    plinth = G.cube(size=1.0, location=(0.0, 0.0, -0.9), scale=(1.1, 1.1, 0.06))
+    M.assign(plinth, M.plain("plinth", (0.12, 0.12, 0.14), roughness=0.25, coat=0.6))
+
+
 HELDOUT_SCENES = {
     "totem": build_totem,
     "teaset": build_teaset,
@@ -137,4 +175,6 @@ HELDOUT_SCENES = {
     "robot": build_robot,
     "mosaic": build_mosaic,
     "library": build_library,
+    "kettle": build_kettle,
+    "trophy": build_trophy,
 }
