@@ -2,9 +2,10 @@
 
 How much fine texture a scene's object carries, from its images alone: the mean Sobel gradient
 magnitude of the luminance over the object's pixels (``texture_energy``). It reads no result, so it can
-be computed for a scene before anything is trained on it; across the project's scenes the one with by
-far the highest value (``heldout/robot``) is the one where 3DGS beats SplatFields3D by more than
-0.2 dB at 4 views and 100 px (docs/results.md, "Where the field loses").
+be computed for a scene before anything is trained on it; across the project's scenes the one with the
+highest value (``heldout/robot``) is the one where 3DGS beats SplatFields3D by more than 0.2 dB at 4
+views and 100 px, and the most textured scenes have the smallest leads (docs/results.md, "Where the
+field loses").
 
 Conventions: Blender-layout scenes (``transforms_<split>.json`` and RGBA images, straight alpha);
 luminance Y = 0.299 R + 0.587 G + 0.114 B of the image composited on white; the object's pixels are
