@@ -44,8 +44,8 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-METHODS = ("gs3d", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp", "deformable3dgs",
-           "owl_4view")
+METHODS = ("gs3d", "mip_splatting", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp",
+           "deformable3dgs", "owl_4view")  # mip_splatting: also the main job's first stage
 BENCH_FRAMES = 24  # frames of the shipped multi-view sequences (dynamic methods size their ResFields by it)
 SIZES = (10_000, 50_000)
 PARTS = ("field", "rasterizer", "backward", "optimizer")
