@@ -7,7 +7,8 @@ validation views take part in choosing the main job's settings, docs/results.md;
 ``library`` are built with high-contrast checkers, stripes and text photos, ``kettle`` and ``trophy``
 from polished metal and coated plastic, so that settings for finely textured and for strongly
 view-dependent scenes can be chosen without the held-out pair); ``lantern`` and ``robot`` have never been
-used to choose a setting and are the held-out check.
+used to choose a setting and are the held-out check, with ``windmill``, ``chess``, ``snowman`` and
+``toybox``, added to it later (built before any run on them, never used to choose a setting).
 
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
@@ -168,6 +169,92 @@ def build_trophy(scene):
     M.assign(plinth, M.plain("plinth", (0.12, 0.12, 0.14), roughness=0.25, coat=0.6))
 
 
+def build_windmill(scene):
+    """An octagonal voronoi tower under a cone roof, four striped sails, a photo banner, a brick well, a grass disc."""
+    C.setup_world(scene, hdri="sunrise.exr", rot_z=0.9, sun_strength=3.0, sun_dir=(0.4, -0.5, 0.7))
+    tower = G.cylinder(radius=0.26, depth=0.9, location=(0.0, 0.0, -0.4), vertices=8)
+    M.assign(tower, M.voronoi("tower", (0.85, 0.8, 0.7), (0.35, 0.25, 0.2), scale=11.0))
+    roof = G.cone(radius1=0.34, radius2=0.0, depth=0.35, location=(0.0, 0.0, 0.22), vertices=8)
+    M.assign(roof, M.plain("roof", (0.55, 0.12, 0.08), roughness=0.4))
+    for i in range(4):
+        a = i * math.pi / 2 + 0.3
+        sail = G.cube(size=1.0, location=(0.21 * math.sin(a), -0.3, 0.05 + 0.21 * math.cos(a)), rotation=(0.0, a, 0.0),
+                      scale=(0.08, 0.015, 0.42))
+        M.assign(sail, M.stripes(f"sail{i}", (0.95, 0.95, 0.9), (0.2, 0.3, 0.6), scale=12.0, roughness=0.5))
+    banner = G.cube(size=1.0, location=(0.0, 0.3, -0.55), scale=(0.35, 0.02, 0.25))
+    M.assign(banner, M.image("banner", "astronaut.png", roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
+    well = G.cylinder(radius=0.16, depth=0.22, location=(0.55, 0.35, -0.8), vertices=24)
+    M.assign(well, M.image("well", "brick.png", roughness=0.6, coord="BOX", scale=(1.5, 1.5), tint=(0.9, 0.6, 0.5)))
+    disc = G.cylinder(radius=0.85, depth=0.04, location=(0.0, 0.0, -0.9), vertices=64)
+    M.assign(disc, M.image("meadow", "grass.png", roughness=0.7, coord="BOX", scale=(2.0, 2.0), tint=(0.5, 0.8, 0.4)))
+
+
+def build_chess(scene):
+    """Chessmen (plain and metallic cones, spheres and a torus) on a chessboard-photo board with a wooden rim."""
+    C.setup_world(scene, hdri="interior.exr", rot_z=2.9, sun_strength=2.8, sun_dir=(-0.4, -0.4, 0.75))
+    board = G.cube(size=1.0, location=(0.0, 0.0, -0.85), scale=(1.3, 1.3, 0.06))
+    M.assign(board, M.image("board", "chessboard_RGB.png", roughness=0.35, coord="BOX", scale=(1.0, 1.0)))
+    rim = G.torus(major=0.9, minor=0.05, location=(0.0, 0.0, -0.86), major_seg=4, minor_seg=8)
+    M.assign(rim, M.stripes("rim", (0.55, 0.35, 0.15), (0.3, 0.15, 0.05), scale=20.0, roughness=0.5))
+    pieces = [((-0.35, -0.3), (0.95, 0.93, 0.85), 0.0), ((0.1, -0.4), (0.1, 0.1, 0.12), 0.0),
+              ((0.4, 0.2), (0.95, 0.93, 0.85), 0.0), ((-0.2, 0.35), (0.1, 0.1, 0.12), 0.0),
+              ((0.3, -0.05), (0.8, 0.6, 0.3), 1.0)]
+    for i, ((x, y), col, metal) in enumerate(pieces):
+        h = 0.3 + 0.08 * (i % 3)
+        body = G.cone(radius1=0.11, radius2=0.04, depth=h, location=(x, y, -0.82 + h / 2), vertices=24)
+        M.assign(body, M.plain(f"piece{i}", col, roughness=0.25, metallic=metal))
+        top = G.uv_sphere(radius=0.07, location=(x, y, -0.82 + h + 0.04))
+        M.assign(top, M.plain(f"top{i}", col, roughness=0.25, metallic=metal))
+    crown = G.torus(major=0.07, minor=0.02, location=(0.3, -0.05, -0.82 + 0.46 + 0.1))
+    M.assign(crown, M.plain("crown_gold", (1.0, 0.78, 0.35), roughness=0.15, metallic=1.0))
+    clock = G.cylinder(radius=0.22, depth=0.05, location=(-0.1, 0.62, -0.55), rotation=(math.radians(80), 0.0, 0.0))
+    M.assign(clock, M.image("clockface", "clock_motion.png", roughness=0.4, coord="BOX", scale=(1.0, 1.0)))
+
+
+def build_snowman(scene):
+    """Three noisy snow spheres, a carrot cone, a striped scarf, a top hat, coal buttons and a photo sign."""
+    C.setup_world(scene, hdri="courtyard.exr", rot_z=3.6, sun_strength=3.2, sun_dir=(0.2, 0.6, 0.7))
+    for i, (r, z) in enumerate([(0.38, -0.55), (0.28, -0.05), (0.2, 0.33)]):
+        ball = G.uv_sphere(radius=r, location=(0.0, 0.0, z))
+        M.assign(ball, M.noise(f"snow{i}", (0.95, 0.96, 0.98), (0.75, 0.8, 0.88), scale=14.0, roughness=0.6, bump=0.2))
+    carrot = G.cone(radius1=0.04, radius2=0.0, depth=0.25, location=(0.0, -0.28, 0.35),
+                    rotation=(math.radians(90), 0.0, 0.0))
+    M.assign(carrot, M.plain("carrot", (0.95, 0.45, 0.05), roughness=0.4))
+    scarf = G.torus(major=0.22, minor=0.05, location=(0.0, 0.0, 0.16))
+    M.assign(scarf, M.stripes("scarf", (0.8, 0.1, 0.1), (0.95, 0.85, 0.2), scale=14.0, roughness=0.6))
+    hat = G.cylinder(radius=0.13, depth=0.22, location=(0.0, 0.0, 0.6))
+    M.assign(hat, M.plain("hat", (0.05, 0.05, 0.06), roughness=0.3, coat=0.4))
+    brim = G.cylinder(radius=0.22, depth=0.02, location=(0.0, 0.0, 0.5))
+    M.assign(brim, M.plain("brim", (0.05, 0.05, 0.06), roughness=0.3))
+    for i, z in enumerate((-0.15, -0.02, 0.1)):
+        coal = G.uv_sphere(radius=0.03, location=(0.0, -0.27 + 0.02 * abs(i - 1), z - 0.05))
+        M.assign(coal, M.plain(f"coal{i}", (0.08, 0.08, 0.08), roughness=0.7))
+    sign = G.cube(size=1.0, location=(0.55, 0.3, -0.6), rotation=(0.0, 0.0, -0.6), scale=(0.3, 0.02, 0.22))
+    M.assign(sign, M.image("sign", "coffee.png", roughness=0.5, coord="BOX", scale=(1.0, 1.0)))
+    ground = G.cylinder(radius=0.85, depth=0.04, location=(0.0, 0.0, -0.92), vertices=64)
+    M.assign(ground, M.noise("ground", (0.9, 0.92, 0.95), (0.6, 0.65, 0.75), scale=5.0, roughness=0.7))
+
+
+def build_toybox(scene):
+    """Photo blocks (rocket, horse, cat, moon) in a stack, a coated torus knot, a steel spring and a checker mat."""
+    C.setup_world(scene, hdri="sunset.exr", rot_z=5.1, sun_strength=3.0, sun_dir=(-0.6, 0.2, 0.65))
+    blocks = [((-0.3, -0.2, -0.7), "rocket.jpg", 0.3), ((0.3, -0.25, -0.7), "horse.png", -0.2),
+              ((0.0, 0.3, -0.7), "chelsea.png", 0.7), ((0.0, 0.0, -0.38), "moon.png", 0.1)]
+    for i, (loc, photo, rot) in enumerate(blocks):
+        b = G.cube(size=0.32, location=loc, rotation=(0.0, 0.0, rot))
+        M.assign(b, M.image(f"block_{i}", photo, roughness=0.45, coord="BOX", scale=(1.0, 1.0)))
+    knot = G.tube(G.torus_knot(2, 3, R=0.18, r=0.07, n=500, center=(0.0, 0.0, 0.0)), radius=0.03, name="toyknot")
+    knot.location = (0.0, 0.0, 0.05)
+    M.assign(knot, M.plain("toyknot", (0.1, 0.6, 0.3), roughness=0.2, coat=0.8))
+    spring = G.tube(G.helix(0.1, 0.05, 6.0, n=400, center=(0.6, 0.4, -0.85)), radius=0.015, name="toyspring")
+    M.assign(spring, M.plain("toysteel", (0.8, 0.82, 0.85), roughness=0.2, metallic=1.0))
+    ball = G.uv_sphere(radius=0.14, location=(-0.6, 0.45, -0.76))
+    M.assign(ball, M.checker("toyball", (0.95, 0.2, 0.2), (0.95, 0.95, 0.9), scale=6.0, roughness=0.3,
+                             coord="Generated"))
+    mat = G.cube(size=1.0, location=(0.0, 0.0, -0.9), scale=(1.2, 1.2, 0.05))
+    M.assign(mat, M.checker("toymat", (0.2, 0.4, 0.8), (0.9, 0.9, 0.85), scale=5.0, roughness=0.5, coord="Generated"))
+
+
 HELDOUT_SCENES = {
     "totem": build_totem,
     "teaset": build_teaset,
@@ -177,4 +264,8 @@ HELDOUT_SCENES = {
     "library": build_library,
     "kettle": build_kettle,
     "trophy": build_trophy,
+    "windmill": build_windmill,
+    "chess": build_chess,
+    "snowman": build_snowman,
+    "toybox": build_toybox,
 }
