@@ -8,7 +8,7 @@ validation views take part in choosing the main job's settings, docs/results.md;
 from polished metal and coated plastic, so that settings for finely textured and for strongly
 view-dependent scenes can be chosen without the held-out pair); ``lantern`` and ``robot`` have never been
 used to choose a setting and are the held-out check, with ``windmill``, ``chess``, ``snowman`` and
-``toybox``, added to it later (built before any run on them, never used to choose a setting).
+``toybox`` (built before any run on them, never used to choose a setting).
 
     .venv-datagen/bin/python tools/datagen/render_all.py --only heldout/lantern heldout/robot --out /tmp/heldout
 """
