@@ -190,7 +190,7 @@ def build_windmill(scene):
 
 
 def build_chess(scene):
-    """Chessmen (plain and metallic cones, spheres and a torus) on a chessboard-photo board with a wooden rim."""
+    """Chessmen (plain and metallic cones, spheres, a torus) on a chessboard-photo board, a striped rim, a clock."""
     C.setup_world(scene, hdri="interior.exr", rot_z=2.9, sun_strength=2.8, sun_dir=(-0.4, -0.4, 0.75))
     board = G.cube(size=1.0, location=(0.0, 0.0, -0.85), scale=(1.3, 1.3, 0.06))
     M.assign(board, M.image("board", "chessboard_RGB.png", roughness=0.35, coord="BOX", scale=(1.0, 1.0)))
