@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from src.fields import CNNTriplaneBackbone, NoBackbone, OffsetFlow, SplatFieldNetwork
+from src.fields.head_chain import cpu_has_amx
 from src.utils.cpu import cpu_has_native_bf16
 
 OUT_KEYS = ("means", "scales", "quats", "opacities", "colors", "canonical_deformed")
@@ -81,12 +82,13 @@ def test_fused_flag_keeps_parameters_and_state_dict():
     assert sum(p.numel() for p in a.parameters()) == sum(p.numel() for p in b.parameters())
 
 
-def _fit_losses(bf16: bool, steps: int = 60) -> list[float]:
+def _fit_losses(bf16: bool, steps: int = 60, head_kernel: str = "off") -> list[float]:
     torch.manual_seed(0)
     backbone = CNNTriplaneBackbone(plane_channels=8, noise_channels=4, noise_res=10, channels=32, n_up_blocks=2,
                                    resnets_per_block=1, norm_groups=32, autocast_bf16=bf16)
     net = SplatFieldNetwork(backbone=backbone, deform_width=64, color_width=64, scale_width=32, opacity_width=32,
-                            rotation_width=32, view_dependent=False, fused=True, autocast_bf16=bf16)
+                            rotation_width=32, view_dependent=False, fused=True, autocast_bf16=bf16,
+                            head_kernel=head_kernel)
     g = torch.Generator().manual_seed(0)
     x = torch.rand(2048, 3, generator=g) * 1.6 - 0.8
     base = torch.full((2048, 3), 0.02)
@@ -111,3 +113,13 @@ def test_bf16_autocast_loss_curve_tracks_float32():
     for i in range(0, len(ref), 10):  # means over windows of 10 steps (Adam's step-to-step jitter averages out)
         a, b = sum(ref[i: i + 10]) / 10, sum(low[i: i + 10]) / 10
         assert abs(a - b) <= 0.25 * a, (i, a, b)  # measured: <= 1 % in the first 30 steps, 19 % at 50-60
+
+
+@pytest.mark.skipif(not cpu_has_amx(), reason="this CPU has no AMX-BF16 tiles")
+def test_head_kernel_loss_curve_tracks_float32():
+    """The heads' hidden layers as AMX kernels (src/fields/head_chain.py): the same fit as the bf16 test."""
+    ref = _fit_losses(False)
+    kern = _fit_losses(True, head_kernel="on")
+    for i in range(0, len(ref), 10):
+        a, b = sum(ref[i: i + 10]) / 10, sum(kern[i: i + 10]) / 10
+        assert abs(a - b) <= 0.25 * a, (i, a, b)

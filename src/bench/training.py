@@ -12,7 +12,8 @@ times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_m
 ``field_budget.head_width`` / ``field_budget.triplane_up_blocks`` values (the sizes a capacity search
 may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run; ``--compile
 BACKEND`` repeats the methods with networks under ``trainer.compile=BACKEND`` (``first_step_ms``, the
-first warm-up step, holds the compilation).
+first warm-up step, holds the compilation); ``--head-kernel on|off`` repeats them under
+``model.network.head_kernel`` (``+k`` in the table: each head's hidden layers as one AMX-BF16 kernel).
 Timings are medians over the timed iterations; compare them as ratios within one run. ``--device
 cuda`` builds the model and the view on the GPU (``rasterizer=auto`` then picks gsplat), waits for the
 GPU at every timer and measures the peaks there.
@@ -147,6 +148,7 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
            "plane_px": getattr(model.network.backbone, "resolution", None) if has_field(cfg) else None,
            "overrides": list(overrides), "n_splats": model.n_splats,
            "compile": compile_backend(backend), "has_network": bool(model.networks()), "first_step_ms": first_step_ms,
+           "head_kernel": bool(getattr(getattr(model, "network", None), "head_kernel", False)),
            "n_params": model.n_params(), "rasterizer": getattr(rasterizer, "name", type(rasterizer).__name__),
            "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals), "device": dev.type}
     row["backbone_ms"] = _backbone_ms(model, iters, sync) if has_field(cfg) else None
@@ -190,9 +192,16 @@ def _flops(model, cam, field: bool) -> dict:
             state.sum().backward()
         model.zero_grad(set_to_none=True)
 
-    tot = count_flops(networks)
-    gen = count_flops(generator) if field else {"total": 0, "conv": 0, "matmul": 0}
     net = getattr(model, "network", None)
+    kernel = bool(getattr(net, "head_kernel", False))
+    if kernel:  # the counter does not see inside the AMX head kernel: count the same products layer by layer
+        net.head_kernel = False
+    try:
+        tot = count_flops(networks)
+    finally:
+        if kernel:
+            net.head_kernel = True
+    gen = count_flops(generator) if field else {"total": 0, "conv": 0, "matmul": 0}
     bf16 = bool(getattr(net, "fused", False) and getattr(net, "autocast_bf16", False))
     gen_bf16 = bool(getattr(getattr(net, "backbone", None), "autocast_bf16", False))
     return {"generator_precision": "bf16" if gen_bf16 else "float32", "flops": tot["total"],
@@ -318,9 +327,9 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequ
 
 def _label(r: dict) -> str:
     """``method width planes`` columns of a row (planes: the tri-plane side in px; '-' without one;
-    ``+c`` after the method: its networks compiled)."""
+    ``+c`` after the method: its networks compiled; ``+k``: its heads' hidden layers as AMX kernels)."""
     planes = f"{r['plane_px']}px" if r.get("plane_px") is not None else "-"
-    name = r["method"] + ("+c" if r.get("compile") else "")
+    name = r["method"] + ("+c" if r.get("compile") else "") + ("+k" if r.get("head_kernel") else "")
     return f"{name:<19} {r.get('head_width') or '-':>5} {planes:>6}"
 
 
@@ -394,6 +403,13 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
             compile_backend(True if args.compile == "true" else args.compile)
         except ValueError as exc:
             ap.error(f"--compile {args.compile!r}: {exc}")
+    if args.head_kernel not in ("", "on", "off"):
+        ap.error(f"--head-kernel {args.head_kernel!r}: choose on or off")
+    if args.head_kernel == "on":
+        from src.fields.head_chain import AMX_FLAGS, cpu_has_amx
+
+        if not cpu_has_amx():
+            ap.error(f"--head-kernel on: this CPU lacks AMX-BF16 tiles (/proc/cpuinfo flags {', '.join(AMX_FLAGS)})")
     if args.rasterizer not in ("auto", "cpu", "torch_ref", "gsplat"):
         ap.error(f"--rasterizer {args.rasterizer!r}: choose from: auto, cpu, torch_ref, gsplat")
     if args.device != "cpu" and not (args.device == "cuda" or args.device.startswith("cuda:")):
@@ -430,6 +446,9 @@ def main(argv: list[str] | None = None) -> int:
                          "values, e.g. 2,3 (40 and 80 px planes; the configured value is always timed)")
     ap.add_argument("--compile", default="", metavar="BACKEND",
                     help="also time the methods with networks under trainer.compile=BACKEND (true = inductor)")
+    ap.add_argument("--head-kernel", default="", metavar="on|off",
+                    help="also time the methods with neural fields under model.network.head_kernel=on|off "
+                         "(each head's hidden layers as one AMX-BF16 kernel, src/fields/head_chain.py)")
     ap.add_argument("--chart", type=Path, default=None,
                     help="draw each row's split against its FLOP floor into this PNG (default: --out with .png)")
     ap.add_argument("--from-json", type=Path, default=None, metavar="FILE",
@@ -470,6 +489,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.compile:
         rows += [_run_isolated(r["method"], r["n_splats"], args, [f"trainer.compile={args.compile}"],
                                {"compile": args.compile}) for r in configured if r.get("has_network")]
+    if args.head_kernel:
+        rows += [_run_isolated(r["method"], r["n_splats"], args, [f"model.network.head_kernel={args.head_kernel}"],
+                               {"head_kernel": args.head_kernel == "on"}) for r in configured if r.get("has_network")]
     for r in rows:
         base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
                     None)

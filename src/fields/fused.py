@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from src.fields.head_chain import head_chain
 from src.fields.linear_relu import linear_relu
 from src.fields.mlp import FieldMLP
 
@@ -91,17 +92,37 @@ def input_layer(heads: Sequence[HeadInput], feat: Tensor, pe: Tensor, t_enc: Ten
     return res
 
 
+def chain_fits(mlp: FieldMLP) -> bool:
+    """True when the hidden layers of ``mlp`` can run as one ``head_chain`` kernel (ReLU, width 32k <= 256)."""
+    return mlp.activation == "relu" and mlp.n_layers >= 3 and mlp.width % 32 == 0 and mlp.width <= 256
+
+
 def head_tail(mlp: FieldMLP, weights: list[Tensor], blocks: list[Tensor], extra: Tensor | None = None,
-              last_dtype: torch.dtype | None = None) -> Tensor:
+              last_dtype: torch.dtype | None = None, kernel: bool = False) -> Tensor:
     """Finish one head from its input-part pre-activations ``blocks`` (``[L0, skip_1, ...]``, each [N, W]).
 
     Equals ``mlp(h_in, extra=extra)`` (same activation, output quirk). ``last_dtype``: run the output
     linear in this dtype outside autocast (float32 keeps the outputs accurate under bf16 autocast).
+    ``kernel``: run the hidden layers as one AMX kernel (``src.fields.head_chain``; bf16 products, as
+    under autocast) where ``chain_fits(mlp)``; the caller checks ``head_chain_ready()``.
     """
     act = mlp._act
-    h = act(blocks[0])  # [N, width]
-    k, last = 1, mlp.n_layers - 1
-    for i in range(1, mlp.n_layers):
+    k, last, first = 1, mlp.n_layers - 1, 1
+    if kernel and chain_fits(mlp):
+        ws, adds = [], []
+        for i in range(1, last):
+            if i in mlp.skips:  # W_skip [h_in, h] + b: the h part of the weight, the rest in blocks[k]
+                ws.append(weights[i][:, mlp.in_dim: mlp.in_dim + mlp.width])
+                adds.append(blocks[k])
+                k += 1
+            else:
+                ws.append(weights[i])
+                adds.append(mlp.layers[i].bias)
+        h = head_chain(blocks[0], ws, adds)  # [N, width] bf16
+        first = last
+    else:
+        h = act(blocks[0])  # [N, width]
+    for i in range(first, mlp.n_layers):
         w = weights[i]
         if i < last and mlp.activation == "relu":  # hidden layer: product, bias, ReLU fused (linear_relu.py)
             if i in mlp.skips:  # W_skip [h_in, h] + b = (W_x h_in + b) + W_h h, the first term in blocks[k]

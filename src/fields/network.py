@@ -31,6 +31,7 @@ from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
 from src.fields.fused import HeadInput, head_tail, head_weights, input_layer
+from src.fields.head_chain import resolve_head_kernel
 from src.fields.mlp import FieldMLP, get_activation
 from src.utils.cpu import resolve_autocast_bf16
 
@@ -89,6 +90,8 @@ class SplatFieldNetwork(nn.Module):
             output linears in float32): ``True``, ``False`` or ``"auto"`` (on where the CPU multiplies
             bfloat16 natively AND a timed matmul shows it faster than float32, ``src.utils.cpu``, and
             the inputs are float32 on the CPU). Fused path only.
+        head_kernel: run each head's hidden layers as one AMX-BF16 kernel (``src.fields.head_chain``) when the
+            fused heads run in bf16: ``"auto"`` (where the CPU has AMX), ``"on"`` (error without AMX), ``"off"``.
     """
 
     def __init__(
@@ -139,6 +142,7 @@ class SplatFieldNetwork(nn.Module):
         scale_mode: str = "exp",
         fused: bool = False,
         autocast_bf16: bool | str = False,
+        head_kernel: bool | str = False,
     ) -> None:
         super().__init__()
         if scale_mode not in SCALE_MODES:
@@ -203,6 +207,7 @@ class SplatFieldNetwork(nn.Module):
         self._act = get_activation(activation)
         self.fused = bool(fused)
         self.autocast_bf16 = resolve_autocast_bf16(autocast_bf16, "matmul")
+        self.head_kernel = self.fused and resolve_head_kernel(head_kernel, self.autocast_bf16)
         # PE(x_can) of the fused path, at the largest level count of the heads that read x_can
         # (a non-persistent buffer only: the state dict is unchanged).
         self._shared_pe = PositionalEncoding(max(pe.n_levels for pe in self._xcan_heads()[1]))
@@ -299,6 +304,7 @@ class SplatFieldNetwork(nn.Module):
         tim = float(time) if self.dynamic else None
         bf16 = self.autocast_bf16 and canonical.device.type == "cpu" and canonical.dtype == torch.float32
         last = torch.float32 if bf16 else None
+        kern = bf16 and self.head_kernel and not torch.compiler.is_compiling()
         mlps, pes = self._xcan_heads()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
             feat = self.backbone.sample(state, canonical)  # [N, F]
@@ -314,12 +320,13 @@ class SplatFieldNetwork(nn.Module):
                 dim_d = self.deform_pe.out_dim(3)
                 deform = HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)
                 (blocks,) = input_layer([deform], feat, self.deform_pe(canonical), t_enc)
-                x_can = canonical + self.deform_weight * head_tail(self.deform_mlp, wd, blocks, last_dtype=last)
+                x_can = canonical + self.deform_weight * head_tail(self.deform_mlp, wd, blocks, last_dtype=last,
+                                                                   kernel=kern)
             blocks_o = input_layer(heads, feat, self._shared_pe(x_can), t_enc)
             outs = {}
             for m, w, b in zip(mlps, weights, blocks_o, strict=True):
                 if m is not self.color_mlp:
-                    outs[id(m)] = head_tail(m, w, b, last_dtype=last)
+                    outs[id(m)] = head_tail(m, w, b, last_dtype=last, kernel=kern)
         means, R = x_can, None
         if self.flow is not None:
             h = self._act(outs[id(self.flow_mlp)]) if self.flow_mlp is not None else None  # [N, flow_width]
@@ -327,7 +334,7 @@ class SplatFieldNetwork(nn.Module):
         extra = self._viewdir_enc(means, viewdirs, camera_center)
         ic = mlps.index(self.color_mlp)
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            c = head_tail(self.color_mlp, weights[ic], blocks_o[ic], extra, last_dtype=last)
+            c = head_tail(self.color_mlp, weights[ic], blocks_o[ic], extra, last_dtype=last, kernel=kern)
         return self._activate(x_can, means, R, base_scale, c, outs[id(self.opacity_mlp)], outs[id(self.scale_mlp)],
                               outs[id(self.rotation_mlp)])
 

@@ -56,12 +56,17 @@ PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
 PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 # 2D Gaussian surfel compositing (2DGS): its own shared object, built on first use by the surfel backend only
 SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
+# fused hidden layers of a field head on AMX-BF16 tiles (src/fields/head_chain.py): built on AMX CPUs only
+HEAD_CHAIN_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_chain_amx.cpp"]
+HEAD_CHAIN_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
+                     "-mamx-bf16"]
 
 OPS_NAMESPACE = "splatfields_cpu"
 
 _lock = threading.Lock()
 _module: Any = None
 _surfel_loaded = False
+_head_chain_loaded = False
 
 
 def cpu_has_avx2_fma() -> bool:
@@ -120,7 +125,8 @@ def build_directory() -> Path:
     return cache_root() / f"rasterize_cpu_{build_key(compile_flags())}"
 
 
-def _load_unit(name: str, sources: list[Path], deps: list[Path], flags: list[str], verbose: bool) -> None:
+def _load_unit(name: str, sources: list[Path], deps: list[Path], flags: list[str], verbose: bool,
+               fallback: str = "Use rasterizer=torch_ref as a slow fallback.") -> None:
     """Build (if needed) and load one shared object into the process (it registers its ops)."""
     from torch.utils import cpp_extension
 
@@ -147,7 +153,7 @@ def _load_unit(name: str, sources: list[Path], deps: list[Path], flags: list[str
             raise RuntimeError(
                 f"Building the CPU extension {name} failed ({type(exc).__name__}: {exc}). "
                 "It needs g++ with OpenMP and the `ninja` package; the build directory is "
-                f"{build_dir}. Use rasterizer=torch_ref as a slow fallback."
+                f"{build_dir}. {fallback}"
             ) from exc
 
 
@@ -192,4 +198,27 @@ def load_surfel_extension(verbose: bool = False) -> Any:
             if not _surfel_loaded:
                 _load_unit("surfel_cpu", SURFEL_SOURCES, [], projection_compile_flags(), verbose)
                 _surfel_loaded = True
+    return getattr(torch.ops, OPS_NAMESPACE)
+
+
+def load_head_chain_extension(verbose: bool = False) -> Any:
+    """Compile (if needed) and load the AMX head-chain kernel (``src/fields/csrc/head_chain_amx.cpp``).
+
+    Built with AVX-512-BF16 / AMX flags into ``head_chain_<hash>/`` of the same cache; call it only on a CPU
+    that reports ``amx_bf16``, ``amx_tile`` and ``avx512_bf16`` (``src.fields.head_chain.cpu_has_amx``).
+
+    Returns:
+        The ``torch.ops.splatfields_cpu`` namespace (``head_chain_forward``, ``head_chain_backward``,
+        ``head_chain_available``).
+
+    Raises:
+        RuntimeError: if the build fails (needs g++ >= 11 with OpenMP, and ``ninja``).
+    """
+    global _head_chain_loaded
+    if not _head_chain_loaded:
+        with _lock:
+            if not _head_chain_loaded:
+                _load_unit("head_chain", HEAD_CHAIN_SOURCES, [], HEAD_CHAIN_CFLAGS, verbose,
+                           "Set model.network.head_kernel=off to use the oneDNN layers.")
+                _head_chain_loaded = True
     return getattr(torch.ops, OPS_NAMESPACE)
