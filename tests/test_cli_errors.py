@@ -60,6 +60,7 @@ def test_tables_valid_keys_still_work(sweep):
     ("training", ["--plane-blocks", "two"], "--plane-blocks 'two': expected comma-separated positive up-sampling"),
     ("training", ["--plane-blocks", "0"], "--plane-blocks '0': expected comma-separated positive up-sampling"),
     ("training", ["--rasterizer", "vulkan"], "--rasterizer 'vulkan': choose from: auto, cpu, torch_ref, gsplat"),
+    ("training", ["--head-kernel", "maybe"], "--head-kernel 'maybe': choose on or off"),
 ])
 def test_bench_bad_arguments_fail_at_once(sub, args, needle):
     p = cli("src.bench", sub, *args)
