@@ -113,3 +113,17 @@ def test_resolve_head_kernel_modes():
         assert resolve_head_kernel("auto", False) is False  # float32 heads: the kernel is bf16 only
     with pytest.raises(ValueError, match="auto, on or off"):
         resolve_head_kernel("sometimes", True)
+
+
+def test_auto_falls_back_when_the_kernel_cannot_be_built(monkeypatch, caplog):
+    import src.fields.head_chain as hc
+
+    def failed_build() -> bool:
+        raise RuntimeError("Building the CPU extension head_chain failed (no AMX intrinsics)")
+
+    monkeypatch.setattr(hc, "cpu_has_amx", lambda: True)
+    monkeypatch.setattr(hc, "head_chain_ready", failed_build)
+    assert hc.resolve_head_kernel("auto", True) is False
+    assert "using the oneDNN layers" in caplog.text
+    with pytest.raises(RuntimeError, match="head_chain failed"):
+        hc.resolve_head_kernel("on", True)

@@ -18,6 +18,7 @@ The kernel runs only on CPUs with AMX-BF16 tiles (``cpu_has_amx``); ``model.netw
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,6 +28,8 @@ from torch import Tensor
 from src.fields.linear_relu import linear_relu
 
 AMX_FLAGS = ("amx_bf16", "amx_tile", "avx512_bf16")
+
+log = logging.getLogger(__name__)
 
 
 @functools.cache
@@ -49,7 +52,8 @@ def resolve_head_kernel(mode: bool | str, bf16: bool) -> bool:
     """Whether to run the heads' hidden layers through the kernel.
 
     Args:
-        mode: ``"auto"`` (where ``bf16`` and the CPU has AMX), ``"on"``/True (error if it cannot), ``"off"``/False.
+        mode: ``"auto"`` (where ``bf16`` and the CPU has AMX; a failed build warns and falls back), ``"on"``/True
+            (error if it cannot run), ``"off"``/False.
         bf16: the fused heads run their products in bf16 (``autocast_bf16`` resolved).
     """
     if mode in (False, "off", "false"):
@@ -58,10 +62,19 @@ def resolve_head_kernel(mode: bool | str, bf16: bool) -> bool:
         if not cpu_has_amx():
             raise RuntimeError("model.network.head_kernel=on needs a CPU with AMX-BF16 tiles and AVX512-BF16 "
                                f"(/proc/cpuinfo flags {', '.join(AMX_FLAGS)}); use head_kernel=auto or off")
-        return head_chain_ready()
+        if not head_chain_ready():
+            raise RuntimeError("model.network.head_kernel=on: Linux did not grant this process the AMX tile state "
+                               "(arch_prctl ARCH_REQ_XCOMP_PERM); use head_kernel=auto or off")
+        return True
     if mode != "auto":
         raise ValueError(f"model.network.head_kernel must be auto, on or off, got {mode!r}")
-    return bf16 and head_chain_ready()
+    if not (bf16 and cpu_has_amx()):
+        return False
+    try:
+        return head_chain_ready()
+    except RuntimeError as exc:  # the build failed (e.g. a compiler without AMX intrinsics): the oneDNN layers
+        log.warning("head_kernel=auto: the AMX head kernel is unavailable, using the oneDNN layers (%s)", exc)
+        return False
 
 
 def pack_in(w: Tensor) -> Tensor:
