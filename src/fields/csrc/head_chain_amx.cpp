@@ -19,6 +19,7 @@
 // product "VNNI over its output" [W/2][W][2] (p[k][i][j] = W[2k+j][i]). Products round their operands to
 // bf16 and accumulate in float32, as oneDNN's bf16 products do under CPU autocast. W must be a multiple of 32.
 
+#include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
 #include <ATen/ops/empty.h>
 #include <ATen/ops/zeros.h>
@@ -219,7 +220,8 @@ std::vector<at::Tensor> head_chain_forward(const at::Tensor& x0, std::vector<at:
   const RowSource xs(x0);
   const int64_t n_blocks = (N + kRows - 1) / kRows;
   const __m512 zero = _mm512_setzero_ps();
-#pragma omp parallel
+  const int nt = std::max(1, at::get_num_threads());  // torch's thread count (threads=1 runs stay on one core)
+#pragma omp parallel num_threads(nt)
   {
     load_tile_config();
     alignas(64) uint16_t hb[kRows * 256];  // current activations [32, W] bf16 (W <= 256)
@@ -303,13 +305,13 @@ std::tuple<at::Tensor, at::Tensor, std::vector<at::Tensor>> head_chain_backward(
   at::Tensor g_x0 = at::empty({N, W}, gopts);
   std::vector<at::Tensor> g_add(L);
   for (int l = 0; l < L; ++l) g_add[l] = is_skip[l] ? at::empty({N, W}, gopts) : at::Tensor();
-  const int n_threads = omp_get_max_threads();
+  const int n_threads = std::max(1, at::get_num_threads());  // torch's thread count, as in the forward
   const int64_t per_thread = static_cast<int64_t>(L) * W * W + static_cast<int64_t>(L) * W;
   std::vector<float> acc(static_cast<size_t>(n_threads) * per_thread, 0.0f);  // per thread: g_w [L,W,W], g_b [L,W]
   const RowSource gs(g_out);
   const int64_t n_blocks = (N + kRows - 1) / kRows;
   const __m512 zero = _mm512_setzero_ps();
-#pragma omp parallel
+#pragma omp parallel num_threads(n_threads)
   {
     load_tile_config();
     float* gw_t = acc.data() + static_cast<size_t>(omp_get_thread_num()) * per_thread;
