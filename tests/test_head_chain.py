@@ -127,3 +127,11 @@ def test_auto_falls_back_when_the_kernel_cannot_be_built(monkeypatch, caplog):
     assert "using the oneDNN layers" in caplog.text
     with pytest.raises(RuntimeError, match="head_chain failed"):
         hc.resolve_head_kernel("on", True)
+
+
+@amx
+def test_kernel_rejects_a_width_it_cannot_tile():
+    """A width that is not a multiple of 32 is one clear error, not a wrong result."""
+    x0, w, b = torch.randn(40, 48), torch.randn(48, 48), torch.randn(48)
+    with pytest.raises(RuntimeError, match="width 48 must be a multiple of 32"):
+        head_chain(x0, [w], [b])

@@ -9,7 +9,7 @@ A head's hidden layers form a chain of equal-width ReLU layers on its first laye
 through ``linear_relu`` (oneDNN, one layer at a time; hand-written backward checked against autograd in
 float64), which ``tests/test_head_chain.py`` compares with this kernel, values and gradients, at bf16
 tolerance. Products round to bf16 and accumulate in float32, as oneDNN's do under CPU bf16 autocast;
-the weights' and adds' gradients come back in float32 (float32 master weights).
+each gradient comes back in its input's dtype (float32 for the master weights and biases).
 
 The kernel runs only on CPUs with AMX-BF16 tiles (``cpu_has_amx``); ``model.network.head_kernel``
 (``auto | on | off``) chooses it (``auto``: wherever the fused heads run in bf16 on such a CPU).
