@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from src.fields import CNNTriplaneBackbone, NoBackbone, OffsetFlow, SplatFieldNetwork
-from src.fields.head_chain import cpu_has_amx
+from src.fields.head_kernel import cpu_has_amx
 from src.utils.cpu import cpu_has_native_bf16
 
 OUT_KEYS = ("means", "scales", "quats", "opacities", "colors", "canonical_deformed")
@@ -117,7 +117,7 @@ def test_bf16_autocast_loss_curve_tracks_float32():
 
 @pytest.mark.skipif(not cpu_has_amx(), reason="this CPU has no AMX-BF16 tiles")
 def test_head_kernel_loss_curve_tracks_float32():
-    """The heads' hidden layers as AMX kernels (src/fields/head_chain.py): the same fit as the bf16 test."""
+    """Each head as one AMX kernel (src/fields/head_kernel.py): the same fit as the bf16 test."""
     ref = _fit_losses(False)
     kern = _fit_losses(True, head_kernel="on")
     for i in range(0, len(ref), 10):

@@ -13,7 +13,7 @@ times the field backbone (tri-plane CNN) alone, forward + backward (``backbone_m
 may choose), so the SplatFields ÷ 3DGS ratio can be read per size in the same run; ``--compile
 BACKEND`` repeats the methods with networks under ``trainer.compile=BACKEND`` (``first_step_ms``, the
 first warm-up step, holds the compilation); ``--head-kernel on|off`` repeats them under
-``model.network.head_kernel`` (``+k`` in the table: each head's hidden layers as one AMX-BF16 kernel).
+``model.network.head_kernel`` (``+k`` in the table: each head's layers as one AMX-BF16 kernel).
 Timings are medians over the timed iterations; compare them as ratios within one run. ``--device
 cuda`` builds the model and the view on the GPU (``rasterizer=auto`` then picks gsplat), waits for the
 GPU at every timer and measures the peaks there.
@@ -327,7 +327,7 @@ def _run_isolated(method: str, n: int, args: argparse.Namespace, overrides: Sequ
 
 def _label(r: dict) -> str:
     """``method width planes`` columns of a row (planes: the tri-plane side in px; '-' without one;
-    ``+c`` after the method: its networks compiled; ``+k``: its heads' hidden layers as AMX kernels)."""
+    ``+c`` after the method: its networks compiled; ``+k``: its heads as AMX kernels)."""
     planes = f"{r['plane_px']}px" if r.get("plane_px") is not None else "-"
     name = r["method"] + ("+c" if r.get("compile") else "") + ("+k" if r.get("head_kernel") else "")
     return f"{name:<19} {r.get('head_width') or '-':>5} {planes:>6}"
@@ -406,7 +406,7 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
     if args.head_kernel not in ("", "on", "off"):
         ap.error(f"--head-kernel {args.head_kernel!r}: choose on or off")
     if args.head_kernel == "on":
-        from src.fields.head_chain import AMX_FLAGS, cpu_has_amx
+        from src.fields.head_kernel import AMX_FLAGS, cpu_has_amx
 
         if not cpu_has_amx():
             ap.error(f"--head-kernel on: this CPU lacks AMX-BF16 tiles (/proc/cpuinfo flags {', '.join(AMX_FLAGS)})")
@@ -448,7 +448,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="also time the methods with networks under trainer.compile=BACKEND (true = inductor)")
     ap.add_argument("--head-kernel", default="", metavar="on|off",
                     help="also time the methods with neural fields under model.network.head_kernel=on|off "
-                         "(each head's hidden layers as one AMX-BF16 kernel, src/fields/head_chain.py)")
+                         "(each head's layers as one AMX-BF16 kernel, src/fields/head_kernel.py)")
     ap.add_argument("--chart", type=Path, default=None,
                     help="draw each row's split against its FLOP floor into this PNG (default: --out with .png)")
     ap.add_argument("--from-json", type=Path, default=None, metavar="FILE",

@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from src.fields.head_chain import head_chain
+from src.fields.head_kernel import head_mlp
 from src.fields.linear_relu import linear_relu
 from src.fields.mlp import FieldMLP
 
@@ -64,26 +64,34 @@ class HeadInput:
         self.w_pe, self.w_f, self.w_t, self.b = (torch.cat(w_pe), torch.cat(w_f), torch.cat(w_t), torch.cat(b))
 
 
-def input_layer(heads: Sequence[HeadInput], feat: Tensor, pe: Tensor, t_enc: Tensor | None) -> list[list[Tensor]]:
+def input_row(feat: Tensor, pe: Tensor) -> Tensor:
+    """The heads' input row without PE(t): ``[f, PE(x)]`` [N, F + pe_max] in f's dtype (PE alone when F = 0)."""
+    return torch.cat([feat, pe.to(feat.dtype)], dim=1) if feat.shape[-1] > 0 else pe
+
+
+def _input_bias(heads: Sequence[HeadInput], t_enc: Tensor | None) -> Tensor:
+    """The biases of the heads' input-reading linears with PE(t)'s part folded in: b + W_t PE(t) [S]."""
+    b = torch.cat([h.b for h in heads])  # [S]
+    if t_enc is not None and t_enc.shape[-1] > 0:
+        b = b + t_enc.reshape(-1) @ torch.cat([h.w_t for h in heads]).t()  # [S]
+    return b
+
+
+def input_layer(heads: Sequence[HeadInput], x: Tensor, t_enc: Tensor | None) -> list[list[Tensor]]:
     """The input part of every first and skip linear of a group of heads, as ONE product.
 
     ``[f, PE] [W_f, W_pe]ᵀ + (b + W_t PE(t))``, split per head into its ``[L0, skip_1, ...]`` blocks.
 
     Args:
         heads: the group's heads (all read the same PE(x) block).
-        feat: [N, F] backbone feature (F may be 0).
-        pe: [N, pe_max] the group's PE(x).
+        x: [N, F + pe_max] the group's ``input_row``.
         t_enc: [1, T] PE(t) row or None (static).
 
     Returns:
         per head, its blocks (each [N, W], views of one [N, S] product).
     """
-    b = torch.cat([h.b for h in heads])  # [S]
-    if t_enc is not None and t_enc.shape[-1] > 0:
-        b = b + t_enc.reshape(-1) @ torch.cat([h.w_t for h in heads]).t()  # [S]
     w = torch.cat([torch.cat([h.w_f, h.w_pe], dim=1) for h in heads])  # [S, F + pe_max]
-    x = torch.cat([feat, pe.to(feat.dtype)], dim=1) if feat.shape[-1] > 0 else pe  # [N, F + pe_max]
-    out = torch.addmm(b, x, w.t())  # [N, S]
+    out = torch.addmm(_input_bias(heads, t_enc), x, w.t())  # [N, S]
     blocks = out.split([s for h in heads for s in h.sizes], dim=1)
     res, k = [], 0
     for h in heads:
@@ -92,37 +100,59 @@ def input_layer(heads: Sequence[HeadInput], feat: Tensor, pe: Tensor, t_enc: Ten
     return res
 
 
-def chain_fits(mlp: FieldMLP) -> bool:
-    """True when the hidden layers of ``mlp`` can run as one ``head_chain`` kernel (ReLU, width 32k <= 256)."""
-    return mlp.activation == "relu" and mlp.n_layers >= 3 and mlp.width % 32 == 0 and mlp.width <= 256
+def kernel_fits(mlp: FieldMLP) -> bool:
+    """True when ``mlp`` can run as one ``head_mlp`` kernel: ReLU, width 32k <= 256, no skip into the output
+    linear, a narrow output (<= 64), no output quirk (a view-dependent colour head's extra input: see callers)."""
+    last = mlp.n_layers - 1
+    return (mlp.activation == "relu" and mlp.n_layers >= 2 and mlp.width % 32 == 0 and mlp.width <= 256
+            and last not in mlp.skips and mlp.out_dim <= 64 and not mlp.output_act_quirk)
+
+
+def kernel_head(head: HeadInput, weights: list[Tensor], x: Tensor, t_enc: Tensor | None) -> Tensor:
+    """The output [N, O] float32 of one head as one AMX kernel (``src.fields.head_kernel.head_mlp``).
+
+    Args:
+        head: the head's input-part columns (``HeadInput``; the layout of ``x``).
+        weights: ``head_weights(head.mlp, ...)``.
+        x: [N, F + pe_max] ``input_row``; t_enc: [1, T] PE(t) row or None.
+    """
+    mlp = head.mlp
+    a = torch.cat([head.w_f, head.w_pe], dim=1).split(head.sizes)  # [W, K] per input-reading linear
+    b_in = _input_bias([head], t_enc).split(head.sizes)
+    hidden, bias, reads, k = [], [b_in[0]], [0], 1
+    for i in range(1, mlp.n_layers - 1):
+        if i in mlp.skips:  # W_skip [h_in, h] + b: the h part here, the h_in part and b in a[k] / b_in[k]
+            reads.append(k)
+            hidden.append(weights[i][:, mlp.in_dim: mlp.in_dim + mlp.width])
+            bias.append(b_in[k])
+            k += 1
+        else:
+            reads.append(-1)
+            hidden.append(weights[i])
+            bias.append(mlp.layers[i].bias)
+    return head_mlp(x, a, hidden, bias, reads, weights[-1], mlp.layers[-1].bias)
+
+
+def head_outputs(heads: Sequence[HeadInput], weights: Sequence[list[Tensor]], x: Tensor, t_enc: Tensor | None,
+                 kernel: Sequence[bool]) -> list[Tensor | list[Tensor]]:
+    """Per head of a group: its output [N, O] where ``kernel`` (``kernel_head``), else its input blocks
+    (``input_layer``, one product for all such heads) for ``head_tail``."""
+    dense = [h for h, k in zip(heads, kernel, strict=True) if not k]
+    blocks = iter(input_layer(dense, x, t_enc) if dense else [])
+    return [kernel_head(h, w, x, t_enc) if k else next(blocks) for h, w, k in zip(heads, weights, kernel, strict=True)]
 
 
 def head_tail(mlp: FieldMLP, weights: list[Tensor], blocks: list[Tensor], extra: Tensor | None = None,
-              last_dtype: torch.dtype | None = None, kernel: bool = False) -> Tensor:
+              last_dtype: torch.dtype | None = None) -> Tensor:
     """Finish one head from its input-part pre-activations ``blocks`` (``[L0, skip_1, ...]``, each [N, W]).
 
     Equals ``mlp(h_in, extra=extra)`` (same activation, output quirk). ``last_dtype``: run the output
     linear in this dtype outside autocast (float32 keeps the outputs accurate under bf16 autocast).
-    ``kernel``: run the hidden layers as one AMX kernel (``src.fields.head_chain``; bf16 products, as
-    under autocast) where ``chain_fits(mlp)``; the caller checks ``head_chain_ready()``.
     """
     act = mlp._act
-    k, last, first = 1, mlp.n_layers - 1, 1
-    if kernel and chain_fits(mlp):
-        ws, adds = [], []
-        for i in range(1, last):
-            if i in mlp.skips:  # W_skip [h_in, h] + b: the h part of the weight, the rest in blocks[k]
-                ws.append(weights[i][:, mlp.in_dim: mlp.in_dim + mlp.width])
-                adds.append(blocks[k])
-                k += 1
-            else:
-                ws.append(weights[i])
-                adds.append(mlp.layers[i].bias)
-        h = head_chain(blocks[0], ws, adds)  # [N, width] bf16
-        first = last
-    else:
-        h = act(blocks[0])  # [N, width]
-    for i in range(first, mlp.n_layers):
+    k, last = 1, mlp.n_layers - 1
+    h = act(blocks[0])  # [N, width]
+    for i in range(1, mlp.n_layers):
         w = weights[i]
         if i < last and mlp.activation == "relu":  # hidden layer: product, bias, ReLU fused (linear_relu.py)
             if i in mlp.skips:  # W_skip [h_in, h] + b = (W_x h_in + b) + W_h h, the first term in blocks[k]

@@ -30,8 +30,8 @@ from torch import Tensor, nn
 from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
-from src.fields.fused import HeadInput, head_tail, head_weights, input_layer
-from src.fields.head_chain import resolve_head_kernel
+from src.fields.fused import HeadInput, head_outputs, head_tail, head_weights, input_row, kernel_fits
+from src.fields.head_kernel import resolve_head_kernel
 from src.fields.mlp import FieldMLP, get_activation
 from src.utils.cpu import resolve_autocast_bf16
 
@@ -90,8 +90,9 @@ class SplatFieldNetwork(nn.Module):
             output linears in float32): ``True``, ``False`` or ``"auto"`` (on where the CPU multiplies
             bfloat16 natively AND a timed matmul shows it faster than float32, ``src.utils.cpu``, and
             the inputs are float32 on the CPU). Fused path only.
-        head_kernel: run each head's hidden layers as one AMX-BF16 kernel (``src.fields.head_chain``) when the
-            fused heads run in bf16: ``"auto"`` (where the CPU has AMX), ``"on"`` (error without AMX), ``"off"``.
+        head_kernel: run each head (input, hidden and output layers) as one AMX-BF16 kernel
+            (``src.fields.head_kernel``) when the fused heads run in bf16: ``"auto"`` (where the CPU has AMX),
+            ``"on"`` (error without AMX), ``"off"``.
     """
 
     def __init__(
@@ -319,22 +320,28 @@ class SplatFieldNetwork(nn.Module):
                 wd = head_weights(self.deform_mlp, fid, tim)
                 dim_d = self.deform_pe.out_dim(3)
                 deform = HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)
-                (blocks,) = input_layer([deform], feat, self.deform_pe(canonical), t_enc)
-                x_can = canonical + self.deform_weight * head_tail(self.deform_mlp, wd, blocks, last_dtype=last,
-                                                                   kernel=kern)
-            blocks_o = input_layer(heads, feat, self._shared_pe(x_can), t_enc)
+                (d,) = head_outputs([deform], [wd], input_row(feat, self.deform_pe(canonical)), t_enc,
+                                    [kern and kernel_fits(self.deform_mlp)])
+                x_can = canonical + self.deform_weight * (d if torch.is_tensor(d) else
+                                                          head_tail(self.deform_mlp, wd, d, last_dtype=last))
+            # per head its output (kernel) or its input blocks; a view-dependent colour head's last
+            # layer reads the view directions, known after the flow: it runs through head_tail
+            kernel = [kern and kernel_fits(m) and not (m is self.color_mlp and self.view_dependent) for m in mlps]
+            res = head_outputs(heads, weights, input_row(feat, self._shared_pe(x_can)), t_enc, kernel)
             outs = {}
-            for m, w, b in zip(mlps, weights, blocks_o, strict=True):
+            for m, w, r in zip(mlps, weights, res, strict=True):
                 if m is not self.color_mlp:
-                    outs[id(m)] = head_tail(m, w, b, last_dtype=last, kernel=kern)
+                    outs[id(m)] = r if torch.is_tensor(r) else head_tail(m, w, r, last_dtype=last)
         means, R = x_can, None
         if self.flow is not None:
             h = self._act(outs[id(self.flow_mlp)]) if self.flow_mlp is not None else None  # [N, flow_width]
             means, R = self.flow(h, x_can, frame_id=fid, time=tim)
         extra = self._viewdir_enc(means, viewdirs, camera_center)
         ic = mlps.index(self.color_mlp)
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            c = head_tail(self.color_mlp, weights[ic], blocks_o[ic], extra, last_dtype=last, kernel=kern)
+        c = res[ic]
+        if not torch.is_tensor(c):
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+                c = head_tail(self.color_mlp, weights[ic], c, extra, last_dtype=last)
         return self._activate(x_can, means, R, base_scale, c, outs[id(self.opacity_mlp)], outs[id(self.scale_mlp)],
                               outs[id(self.rotation_mlp)])
 

@@ -56,9 +56,9 @@ PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
 PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 # 2D Gaussian surfel compositing (2DGS): its own shared object, built on first use by the surfel backend only
 SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
-# fused hidden layers of a field head on AMX-BF16 tiles (src/fields/head_chain.py): built on AMX CPUs only
-HEAD_CHAIN_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_chain_amx.cpp"]
-HEAD_CHAIN_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
+# a field head's layers as one kernel on AMX-BF16 tiles (src/fields/head_kernel.py): built on AMX CPUs only
+HEAD_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_amx.cpp"]
+HEAD_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
                      "-mamx-bf16"]
 
 OPS_NAMESPACE = "splatfields_cpu"
@@ -66,7 +66,7 @@ OPS_NAMESPACE = "splatfields_cpu"
 _lock = threading.Lock()
 _module: Any = None
 _surfel_loaded = False
-_head_chain_loaded = False
+_head_loaded = False
 
 
 def cpu_has_avx2_fma() -> bool:
@@ -201,24 +201,24 @@ def load_surfel_extension(verbose: bool = False) -> Any:
     return getattr(torch.ops, OPS_NAMESPACE)
 
 
-def load_head_chain_extension(verbose: bool = False) -> Any:
-    """Compile (if needed) and load the AMX head-chain kernel (``src/fields/csrc/head_chain_amx.cpp``).
+def load_head_extension(verbose: bool = False) -> Any:
+    """Compile (if needed) and load the AMX field-head kernel (``src/fields/csrc/head_amx.cpp``).
 
-    Built with AVX-512-BF16 / AMX flags into ``head_chain_<hash>/`` of the same cache; call it only on a CPU
-    that reports ``amx_bf16``, ``amx_tile`` and ``avx512_bf16`` (``src.fields.head_chain.cpu_has_amx``).
+    Built with AVX-512-BF16 / AMX flags into ``head_amx_<hash>/`` of the same cache; call it only on a CPU
+    that reports ``amx_bf16``, ``amx_tile`` and ``avx512_bf16`` (``src.fields.head_kernel.cpu_has_amx``).
 
     Returns:
-        The ``torch.ops.splatfields_cpu`` namespace (``head_chain_forward``, ``head_chain_backward``,
-        ``head_chain_available``).
+        The ``torch.ops.splatfields_cpu`` namespace (``head_forward``, ``head_backward``,
+        ``head_available``).
 
     Raises:
         RuntimeError: if the build fails (needs g++ >= 11 with OpenMP, and ``ninja``).
     """
-    global _head_chain_loaded
-    if not _head_chain_loaded:
+    global _head_loaded
+    if not _head_loaded:
         with _lock:
-            if not _head_chain_loaded:
-                _load_unit("head_chain", HEAD_CHAIN_SOURCES, [], HEAD_CHAIN_CFLAGS, verbose,
+            if not _head_loaded:
+                _load_unit("head_amx", HEAD_SOURCES, [], HEAD_CFLAGS, verbose,
                            "Set model.network.head_kernel=off to use the oneDNN layers.")
-                _head_chain_loaded = True
+                _head_loaded = True
     return getattr(torch.ops, OPS_NAMESPACE)

@@ -1,0 +1,479 @@
+// A field head's layers as ONE kernel on AMX-BF16 tiles (src/fields/head_kernel.py).
+//
+// A head reads its input x = [f, PE(x)] [N, K] at its first linear and at each skip linear, runs equal-width
+// ReLU layers and ends in a narrow linear output (3 colours, 1 opacity, 3 scales, 4 quaternion terms):
+//
+//     h_0 = ReLU(x A_0ᵀ + b_0),   h_l = ReLU(h_{l-1} W_lᵀ [+ x A_lᵀ at a skip layer] + b_l)   (l = 1..L),
+//     y   = h_L W_outᵀ + b_out                                                              [N, O] float32.
+//
+// Evaluated layer by layer through oneDNN, every layer writes and re-reads [N, W] activations, the input
+// layers write one wide [N, S] product that the backward gathers again, the output layer runs on a float32
+// copy of h_L, and the backward runs separate passes for masks, bias sums and products. Here a block of 32
+// splats goes through ALL layers while it sits in cache: per layer 16-row AMX tiles against the packed
+// weights, bias and ReLU applied on the float32 tile result, rounded to bf16 as the next layer's input; the
+// output layer in float32 FMAs on the bf16 h_L. Only the activations h_0..h_L leave the cache (bf16, one
+// [N, W] tensor per layer), for the backward. The backward walks the same blocks from y down to x: output
+// layer, then per layer the mask, the bias sum, the weight gradients (gᵀ h and gᵀ x, accumulated in float32
+// per thread over its blocks) and the input gradients (g W, and g A into the block's x gradient), all in cache.
+//
+// Layouts (bf16 stored as uint16): activations row-major [N, W]; x row-major [N, K] (float32 or bf16, row
+// stride free), zero-padded in cache to Kp (a multiple of 32); a weight for a forward product is packed
+// "VNNI over its input" [in/2][out][2] (p[k][o][j] = W[o][2k+j]), for the backward input-gradient product
+// "VNNI over its output" [out/2][in][2] (p[k][i][j] = W[2k+j][i]). Products round their operands to bf16 and
+// accumulate in float32, as oneDNN's bf16 products do under CPU autocast. W must be a multiple of 32.
+
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/library.h>
+#include <omp.h>
+
+#include <immintrin.h>
+#include <sys/syscall.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <cstring>
+#include <vector>
+
+namespace {
+
+constexpr int kRows = 32;  // splats per block: two 16-row tiles
+
+struct alignas(64) TileConfig {
+  uint8_t palette_id;
+  uint8_t start_row;
+  uint8_t reserved[14];
+  uint16_t colsb[16];
+  uint8_t rows[16];
+};
+
+// Every tile 16 rows x 64 bytes: C tiles 16 x 16 float32, A tiles 16 x 32 bf16, B tiles 16 pair-rows x 16 x 2 bf16.
+void load_tile_config() {
+  TileConfig cfg;
+  std::memset(&cfg, 0, sizeof(cfg));
+  cfg.palette_id = 1;
+  for (int t = 0; t < 8; ++t) {
+    cfg.colsb[t] = 64;
+    cfg.rows[t] = 16;
+  }
+  _tile_loadconfig(&cfg);
+}
+
+// Linux asks a process to request the AMX tile state before its first tile instruction.
+bool request_amx_permission() {
+  constexpr long kArchReqXcompPerm = 0x1023;
+  constexpr long kXfeatureXtiledata = 18;
+  return syscall(SYS_arch_prctl, kArchReqXcompPerm, kXfeatureXtiledata) == 0;
+}
+
+inline __m512 load16(const float* p) { return _mm512_loadu_ps(p); }
+inline __m512 load16(const uint16_t* p) {
+  __m256i v = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p));
+  return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(v), 16));
+}
+// 16 bf16 at p, each zero-extended into a 32-bit lane
+inline __m512i load16_u32(const uint16_t* p) {
+  return _mm512_cvtepu16_epi32(_mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+}
+
+// In-register transpose of a 16 x 16 float32 block (r[i] holds row i; afterwards column i).
+inline void transpose16x16(__m512 r[16]) {
+  __m512 t[16];
+  for (int i = 0; i < 8; ++i) {
+    t[2 * i] = _mm512_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+    t[2 * i + 1] = _mm512_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+  }
+  for (int i = 0; i < 4; ++i) {
+    r[4 * i] = _mm512_shuffle_ps(t[4 * i], t[4 * i + 2], _MM_SHUFFLE(1, 0, 1, 0));
+    r[4 * i + 1] = _mm512_shuffle_ps(t[4 * i], t[4 * i + 2], _MM_SHUFFLE(3, 2, 3, 2));
+    r[4 * i + 2] = _mm512_shuffle_ps(t[4 * i + 1], t[4 * i + 3], _MM_SHUFFLE(1, 0, 1, 0));
+    r[4 * i + 3] = _mm512_shuffle_ps(t[4 * i + 1], t[4 * i + 3], _MM_SHUFFLE(3, 2, 3, 2));
+  }
+  for (int i = 0; i < 4; ++i) {
+    t[i] = _mm512_shuffle_f32x4(r[i], r[i + 4], 0x88);
+    t[i + 4] = _mm512_shuffle_f32x4(r[i], r[i + 4], 0xdd);
+    t[i + 8] = _mm512_shuffle_f32x4(r[i + 8], r[i + 12], 0x88);
+    t[i + 12] = _mm512_shuffle_f32x4(r[i + 8], r[i + 12], 0xdd);
+  }
+  for (int i = 0; i < 8; ++i) {
+    r[i] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0x88);
+    r[i + 8] = _mm512_shuffle_f32x4(t[i], t[i + 8], 0xdd);
+  }
+}
+
+// 32 floats (lo then hi) -> 32 bf16 at p, round to nearest even
+inline void store32_bf16(uint16_t* p, __m512 lo, __m512 hi) {
+  __m512bh v = _mm512_cvtne2ps_pbh(hi, lo);
+  _mm512_storeu_si512(reinterpret_cast<void*>(p), reinterpret_cast<__m512i&>(v));
+}
+
+// C[M][N] (=, or += when acc) A[M][K] B, A row-major bf16 (lda), B packed [K/2][N][2] bf16, C float32 (ldc).
+// M, N, K multiples of 32. Tiles: 0-3 C (2 x 2), 4-5 A, 6-7 B.
+inline void gemm(const uint16_t* A, int lda, const uint16_t* B, int K, int N, float* C, int ldc, int M, bool acc) {
+  for (int m = 0; m < M; m += 32) {
+    for (int n = 0; n < N; n += 32) {
+      float* c = C + static_cast<size_t>(m) * ldc + n;
+      if (acc) {
+        _tile_loadd(0, c, ldc * 4);
+        _tile_loadd(1, c + 16, ldc * 4);
+        _tile_loadd(2, c + 16 * ldc, ldc * 4);
+        _tile_loadd(3, c + 16 * ldc + 16, ldc * 4);
+      } else {
+        _tile_zero(0);
+        _tile_zero(1);
+        _tile_zero(2);
+        _tile_zero(3);
+      }
+      for (int k = 0; k < K; k += 32) {
+        const uint16_t* a = A + static_cast<size_t>(m) * lda + k;
+        const uint16_t* b = B + static_cast<size_t>(k / 2) * N * 2 + n * 2;
+        _tile_loadd(4, a, lda * 2);
+        _tile_loadd(5, a + 16 * lda, lda * 2);
+        _tile_loadd(6, b, N * 4);
+        _tile_loadd(7, b + 32, N * 4);
+        _tile_dpbf16ps(0, 4, 6);
+        _tile_dpbf16ps(1, 4, 7);
+        _tile_dpbf16ps(2, 5, 6);
+        _tile_dpbf16ps(3, 5, 7);
+      }
+      _tile_stored(0, c, ldc * 4);
+      _tile_stored(1, c + 16, ldc * 4);
+      _tile_stored(2, c + 16 * ldc, ldc * 4);
+      _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
+    }
+  }
+}
+
+// Row r of a [N, C] float32 or bf16 tensor (row stride in elements).
+struct RowSource {
+  const float* f32 = nullptr;
+  const uint16_t* b16 = nullptr;
+  int64_t stride = 0;
+  explicit RowSource(const at::Tensor& t) : stride(t.stride(0)) {
+    if (t.scalar_type() == at::kFloat) {
+      f32 = t.data_ptr<float>();
+    } else {
+      b16 = reinterpret_cast<const uint16_t*>(t.data_ptr<at::BFloat16>());
+    }
+  }
+  // the n <= 16 elements from column col as float32 (the rest zero; nothing past them is read)
+  inline __m512 load(int64_t row, int col, int n = 16) const {
+    const __mmask16 m = n >= 16 ? static_cast<__mmask16>(0xffff) : static_cast<__mmask16>((1u << n) - 1u);
+    if (f32) return _mm512_maskz_loadu_ps(m, f32 + row * stride + col);
+    __m256i v = _mm256_maskz_loadu_epi16(m, b16 + row * stride + col);
+    return _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(v), 16));
+  }
+};
+
+// True when this CPU has AVX512-BF16 and Linux granted this process the AMX tile state (asked once).
+bool head_available() {
+  static const bool ok = [] {
+    if (!__builtin_cpu_supports("avx512bf16")) return false;
+    return request_amx_permission();
+  }();
+  return ok;
+}
+
+const uint16_t* bf16_ptr(const at::Tensor& t) { return reinterpret_cast<const uint16_t*>(t.data_ptr<at::BFloat16>()); }
+uint16_t* bf16_ptr_mut(at::Tensor& t) { return reinterpret_cast<uint16_t*>(t.data_ptr<at::BFloat16>()); }
+
+inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
+
+// Rows r0 .. r0+nr of x [N, K] into xb [32, Kp] bf16 (columns K..Kp and rows nr..32 zero).
+void load_x_block(const RowSource& xs, int64_t r0, int nr, int K, int Kp, uint16_t* xb) {
+  const __m512 zero = _mm512_setzero_ps();
+  for (int r = 0; r < kRows; ++r) {
+    for (int c = 0; c < Kp; c += 32) {
+      __m512 lo = zero, hi = zero;
+      if (r < nr) {
+        if (c < K) lo = xs.load(r0 + r, c, K - c);
+        if (c + 16 < K) hi = xs.load(r0 + r, c + 16, K - c - 16);
+      }
+      store32_bf16(xb + r * Kp + c, lo, hi);
+    }
+  }
+}
+
+// VNNI over rows of a [32, C] bf16 block (row stride ld, rows >= nr zero): dst[k][i][j] = src[2k+j][i].
+void vnni_rows(const uint16_t* src, int64_t ld, int nr, int C, uint16_t* dst) {
+  for (int k = 0; k < kRows / 2; ++k) {
+    const int ra = 2 * k, rb = 2 * k + 1;
+    for (int i = 0; i < C; i += 16) {
+      const __m512i a = ra < nr ? load16_u32(src + ra * ld + i) : _mm512_setzero_si512();
+      const __m512i c = rb < nr ? load16_u32(src + rb * ld + i) : _mm512_setzero_si512();
+      _mm512_storeu_si512(reinterpret_cast<void*>(dst + (k * C + i) * 2), _mm512_or_si512(a, _mm512_slli_epi32(c, 16)));
+    }
+  }
+}
+
+struct Shape {
+  int64_t N;
+  int K, Kp, W, L, O;
+};
+
+// Checks shared by forward and backward; returns the head's shape.
+Shape check_head(const at::Tensor& x, int64_t n_x, int64_t L, const std::vector<int64_t>& reads_x, const at::Tensor& w_out,
+                 const char* fn) {
+  TORCH_CHECK(head_available(), fn, ": this CPU or process cannot use AMX-BF16 tiles");
+  TORCH_CHECK(x.device().is_cpu() && x.dim() == 2 && x.stride(1) == 1, fn, ": x must be a CPU [N, K] tensor with contiguous rows");
+  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kBFloat16, fn, ": x must be float32 or bfloat16");
+  TORCH_CHECK(w_out.dim() == 2 && w_out.scalar_type() == at::kFloat && w_out.is_contiguous(), fn,
+              ": w_out must be a contiguous float32 [O, W]");
+  Shape s{x.size(0), static_cast<int>(x.size(1)), 0, static_cast<int>(w_out.size(1)), static_cast<int>(L),
+          static_cast<int>(w_out.size(0))};
+  s.Kp = (s.K + 31) / 32 * 32;
+  TORCH_CHECK(s.W % 32 == 0 && s.W <= 256, fn, ": width ", s.W, " must be a multiple of 32, at most 256");
+  TORCH_CHECK(s.K >= 1 && s.Kp <= 256, fn, ": input width ", s.K, " must be 1..256");
+  TORCH_CHECK(s.O >= 1 && s.O <= 64, fn, ": output width ", s.O, " must be 1..64");
+  TORCH_CHECK(static_cast<int64_t>(reads_x.size()) == L + 1 && reads_x[0] == 0, fn,
+              ": reads_x must name an input weight for each of the L + 1 layers, the first layer's being 0");
+  for (int64_t l = 0; l <= L; ++l)
+    TORCH_CHECK(reads_x[l] >= -1 && reads_x[l] < n_x, fn, ": reads_x[", l, "] = ", reads_x[l], " is not an input weight");
+  return s;
+}
+
+void check_pack(const at::Tensor& p, int64_t numel, const char* fn, const char* what, int64_t i) {
+  TORCH_CHECK(p.scalar_type() == at::kBFloat16 && p.is_contiguous() && p.numel() == numel, fn, ": ", what, " ", i,
+              " must be a contiguous bf16 pack of ", numel, " elements, got ", p.numel());
+}
+
+// Forward. x [N, K]; a_in[s] [Kp/2, W, 2] the input weights (first layer, skip layers; zero-padded to Kp);
+// w_in[l] [W/2, W, 2] the hidden weights (l = 1..L stored at l-1); bias [L+1, W] float32; reads_x[l]: the
+// input weight layer l adds (-1: none); w_out [O, W], b_out [O] float32.
+// Returns (y [N, O] float32, h_0..h_L: L+1 tensors [N, W] bf16, one allocation per layer: sizes the allocator
+// reuses between steps, where one [L+1, N, W] block would be mapped afresh).
+std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
+    const at::Tensor& x, std::vector<at::Tensor> a_in, std::vector<at::Tensor> w_in, const at::Tensor& bias,
+    std::vector<int64_t> reads_x, const at::Tensor& w_out, const at::Tensor& b_out) {
+  const char* fn = "head_forward";
+  const Shape s = check_head(x, static_cast<int64_t>(a_in.size()), static_cast<int64_t>(w_in.size()), reads_x, w_out, fn);
+  const int64_t N = s.N;
+  const int K = s.K, Kp = s.Kp, W = s.W, L = s.L, O = s.O;
+  std::vector<const uint16_t*> ap(a_in.size()), wp(L);
+  for (size_t i = 0; i < a_in.size(); ++i) {
+    check_pack(a_in[i], static_cast<int64_t>(Kp) * W, fn, "input weight", static_cast<int64_t>(i));
+    ap[i] = bf16_ptr(a_in[i]);
+  }
+  for (int l = 0; l < L; ++l) {
+    check_pack(w_in[l], static_cast<int64_t>(W) * W, fn, "hidden weight", l);
+    wp[l] = bf16_ptr(w_in[l]);
+  }
+  TORCH_CHECK(bias.scalar_type() == at::kFloat && bias.is_contiguous() && bias.numel() == static_cast<int64_t>(L + 1) * W,
+              fn, ": bias must be a contiguous float32 [L + 1, W]");
+  TORCH_CHECK(b_out.scalar_type() == at::kFloat && b_out.is_contiguous() && b_out.numel() == O, fn,
+              ": b_out must be a contiguous float32 [O]");
+  const float* bp = bias.data_ptr<float>();
+  const float* wo = w_out.data_ptr<float>();
+  const float* bo = b_out.data_ptr<float>();
+  std::vector<at::Tensor> H(L + 1);
+  std::vector<uint16_t*> Hp(L + 1);
+  for (int l = 0; l <= L; ++l) {
+    H[l] = at::empty({N, W}, x.options().dtype(at::kBFloat16));
+    Hp[l] = bf16_ptr_mut(H[l]);
+  }
+  at::Tensor y = at::empty({N, O}, x.options().dtype(at::kFloat));
+  float* yp = y.data_ptr<float>();
+  const RowSource xs(x);
+  const int64_t n_blocks = (N + kRows - 1) / kRows;
+  const __m512 zero = _mm512_setzero_ps();
+  const int nt = std::max(1, at::get_num_threads());  // torch's thread count (threads=1 runs stay on one core)
+#pragma omp parallel num_threads(nt)
+  {
+    load_tile_config();
+    alignas(64) uint16_t xb[kRows * 256];  // the block's input [32, Kp] bf16
+    alignas(64) uint16_t hb[kRows * 256];  // current activations [32, W] bf16 (W <= 256)
+    alignas(64) float cf[kRows * 256];     // product result [32, W] float32
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < n_blocks; ++b) {
+      const int64_t r0 = b * kRows;
+      const int nr = static_cast<int>(std::min<int64_t>(kRows, N - r0));
+      load_x_block(xs, r0, nr, K, Kp, xb);
+      for (int l = 0; l <= L; ++l) {
+        if (l > 0) gemm(hb, W, wp[l - 1], W, W, cf, W, kRows, false);
+        if (reads_x[l] >= 0) gemm(xb, Kp, ap[reads_x[l]], Kp, W, cf, W, kRows, l > 0);
+        const float* bl = bp + static_cast<int64_t>(l) * W;
+        for (int r = 0; r < kRows; ++r) {
+          for (int o = 0; o < W; o += 32) {
+            const __m512 lo = _mm512_add_ps(load16(cf + r * W + o), load16(bl + o));
+            const __m512 hi = _mm512_add_ps(load16(cf + r * W + o + 16), load16(bl + o + 16));
+            store32_bf16(hb + r * W + o, _mm512_max_ps(lo, zero), _mm512_max_ps(hi, zero));
+          }
+          if (r < nr) std::memcpy(Hp[l] + (r0 + r) * W, hb + r * W, W * 2);
+        }
+      }
+      for (int r = 0; r < nr; ++r) {  // y = h_L W_outᵀ + b_out, float32 on the bf16 h_L
+        for (int o = 0; o < O; ++o) {
+          __m512 acc = zero;
+          for (int i = 0; i < W; i += 16) acc = _mm512_fmadd_ps(load16(hb + r * W + i), load16(wo + o * W + i), acc);
+          yp[(r0 + r) * O + o] = hsum(acc) + bo[o];
+        }
+      }
+    }
+    _tile_release();
+  }
+  return {y, H};
+}
+
+// Backward. g_y [N, O] float32; x, H (h_0..h_L) from the forward; a_out[s] [W/2, Kp, 2] the input weights packed
+// over their output; w_out_packs[l] [W/2, W, 2] the hidden weights packed over their output; reads_x as in the
+// forward; w_out [O, W] float32. Returns (g_x [N, K] float32, g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W],
+// g_w_out [O, W], g_b_out [O]), all float32.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> head_backward(
+    const at::Tensor& g_y, const at::Tensor& x, std::vector<at::Tensor> H, std::vector<at::Tensor> a_out,
+    std::vector<at::Tensor> w_packs, std::vector<int64_t> reads_x, const at::Tensor& w_out) {
+  const char* fn = "head_backward";
+  const Shape s = check_head(x, static_cast<int64_t>(a_out.size()), static_cast<int64_t>(w_packs.size()), reads_x, w_out, fn);
+  const int64_t N = s.N;
+  const int K = s.K, Kp = s.Kp, W = s.W, L = s.L, O = s.O;
+  const int S = static_cast<int>(a_out.size());
+  TORCH_CHECK(static_cast<int>(H.size()) == L + 1, fn, ": expected ", L + 1, " activations");
+  std::vector<const uint16_t*> Hp(L + 1);
+  for (int l = 0; l <= L; ++l) {
+    TORCH_CHECK(H[l].dim() == 2 && H[l].size(0) == N && H[l].size(1) == W && H[l].scalar_type() == at::kBFloat16 &&
+                H[l].is_contiguous(), fn, ": activation ", l, " must be the forward's bf16 [N, W]");
+    Hp[l] = bf16_ptr(H[l]);
+  }
+  TORCH_CHECK(g_y.scalar_type() == at::kFloat && g_y.is_contiguous() && g_y.dim() == 2 && g_y.size(0) == N &&
+              g_y.size(1) == O, fn, ": g_y must be a contiguous float32 [N, O]");
+  std::vector<const uint16_t*> ap(S), wp(L);
+  for (int i = 0; i < S; ++i) {
+    check_pack(a_out[i], static_cast<int64_t>(Kp) * W, fn, "input weight", i);
+    ap[i] = bf16_ptr(a_out[i]);
+  }
+  for (int l = 0; l < L; ++l) {
+    check_pack(w_packs[l], static_cast<int64_t>(W) * W, fn, "hidden weight", l);
+    wp[l] = bf16_ptr(w_packs[l]);
+  }
+  const float* gyp = g_y.data_ptr<float>();
+  const float* wo = w_out.data_ptr<float>();
+  const auto fopts = g_y.options().dtype(at::kFloat);
+  at::Tensor g_x = at::empty({N, K}, fopts);
+  float* gxp = g_x.data_ptr<float>();
+  const int n_threads = std::max(1, at::get_num_threads());  // torch's thread count, as in the forward
+  // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [O, W], g_b_out [O]
+  const int64_t n_a = static_cast<int64_t>(S) * W * Kp, n_w = static_cast<int64_t>(L) * W * W;
+  const int64_t n_b = static_cast<int64_t>(L + 1) * W, n_wo = static_cast<int64_t>(O) * W;
+  const int64_t per_thread = n_a + n_w + n_b + n_wo + O;
+  std::vector<float> acc(static_cast<size_t>(n_threads) * per_thread, 0.0f);
+  const RowSource xs(x);
+  const int64_t n_blocks = (N + kRows - 1) / kRows;
+  const __m512 zero = _mm512_setzero_ps();
+#pragma omp parallel num_threads(n_threads)
+  {
+    load_tile_config();
+    float* ga_t = acc.data() + static_cast<size_t>(omp_get_thread_num()) * per_thread;
+    float* gw_t = ga_t + n_a;
+    float* gb_t = gw_t + n_w;
+    float* gwo_t = gb_t + n_b;
+    float* gbo_t = gwo_t + n_wo;
+    alignas(64) float g[kRows * 256];         // gradient of the current layer's output [32, W] float32
+    alignas(64) uint16_t gpb[kRows * 256];    // masked gradient, bf16 row-major [32, W]
+    alignas(64) uint16_t gpt[256 * kRows];    // masked gradient, bf16 transposed [W, 32]
+    alignas(64) uint16_t hv[kRows * 256];     // a layer's input, VNNI over rows [16, W, 2]
+    alignas(64) uint16_t xb[kRows * 256];     // the block's x [32, Kp] bf16
+    alignas(64) uint16_t xv[kRows * 256];     // x VNNI over rows [16, Kp, 2]
+    alignas(64) float gx[kRows * 256];        // the block's x gradient [32, Kp] float32
+#pragma omp for schedule(static)
+    for (int64_t b = 0; b < n_blocks; ++b) {
+      const int64_t r0 = b * kRows;
+      const int nr = static_cast<int>(std::min<int64_t>(kRows, N - r0));
+      const uint16_t* HL = Hp[L] + r0 * W;
+      // output layer: g = g_y W_out (rows >= nr zero), g_W_out += g_yᵀ h_L, g_b_out += Σ g_y
+      for (int r = 0; r < kRows; ++r) {
+        for (int i = 0; i < W; i += 16) {
+          __m512 v = zero;
+          if (r < nr)
+            for (int o = 0; o < O; ++o) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(wo + o * W + i), v);
+          _mm512_storeu_ps(g + r * W + i, v);
+        }
+      }
+      for (int o = 0; o < O; ++o) {
+        for (int i = 0; i < W; i += 16) {
+          __m512 v = load16(gwo_t + o * W + i);
+          for (int r = 0; r < nr; ++r) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(HL + r * W + i), v);
+          _mm512_storeu_ps(gwo_t + o * W + i, v);
+        }
+        float sb = 0.0f;
+        for (int r = 0; r < nr; ++r) sb += gyp[(r0 + r) * O + o];
+        gbo_t[o] += sb;
+      }
+      load_x_block(xs, r0, nr, K, Kp, xb);
+      vnni_rows(xb, Kp, kRows, Kp, xv);
+      std::memset(gx, 0, sizeof(float) * kRows * Kp);
+      for (int l = L; l >= 0; --l) {
+        const uint16_t* Hl = Hp[l] + r0 * W;
+        // mask by h_l > 0 (pad rows: zero): float32 in place in g, bf16-rounded in gpb; bias sum
+        for (int r = 0; r < kRows; ++r) {
+          for (int o = 0; o < W; o += 32) {
+            __m512 lo = zero, hi = zero;
+            if (r < nr) {
+              __m512 y0 = load16(Hl + r * W + o), y1 = load16(Hl + r * W + o + 16);
+              lo = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y0, zero, _CMP_GT_OQ), load16(g + r * W + o));
+              hi = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y1, zero, _CMP_GT_OQ), load16(g + r * W + o + 16));
+            }
+            _mm512_storeu_ps(g + r * W + o, lo);
+            _mm512_storeu_ps(g + r * W + o + 16, hi);
+            store32_bf16(gpb + r * W + o, lo, hi);
+          }
+        }
+        float* gb = gb_t + static_cast<int64_t>(l) * W;
+        for (int o = 0; o < W; o += 16) {
+          __m512 v = load16(gb + o);
+          for (int r = 0; r < nr; ++r) v = _mm512_add_ps(v, load16(g + r * W + o));
+          _mm512_storeu_ps(gb + o, v);
+        }
+        // transpose the masked gradient to [W, 32], bf16 (16 x 16 float32 blocks)
+        for (int ob = 0; ob < W; ob += 16) {
+          __m512 lo[16], hi[16];
+          for (int r = 0; r < 16; ++r) {
+            lo[r] = load16(g + r * W + ob);
+            hi[r] = load16(g + (r + 16) * W + ob);
+          }
+          transpose16x16(lo);
+          transpose16x16(hi);
+          for (int o = 0; o < 16; ++o) store32_bf16(gpt + (ob + o) * kRows, lo[o], hi[o]);
+        }
+        if (reads_x[l] >= 0) {
+          const int si = static_cast<int>(reads_x[l]);
+          gemm(gpt, kRows, xv, kRows, Kp, ga_t + static_cast<int64_t>(si) * W * Kp, Kp, W, true);  // g_A += gᵀ x
+          gemm(gpb, W, ap[si], W, Kp, gx, Kp, kRows, true);                                      // g_x += g A
+        }
+        if (l == 0) break;
+        vnni_rows(Hp[l - 1] + r0 * W, W, nr, W, hv);
+        gemm(gpt, kRows, hv, kRows, W, gw_t + static_cast<int64_t>(l - 1) * W * W, W, W, true);  // g_W += gᵀ h
+        gemm(gpb, W, wp[l - 1], W, W, g, W, kRows, false);                                      // g_h = g W
+      }
+      for (int r = 0; r < nr; ++r) std::memcpy(gxp + (r0 + r) * K, gx + r * Kp, sizeof(float) * K);
+    }
+    _tile_release();
+  }
+  at::Tensor g_all = at::zeros({per_thread}, fopts);
+  float* gp = g_all.data_ptr<float>();
+  for (int t = 0; t < n_threads; ++t) {
+    const float* a = acc.data() + static_cast<size_t>(t) * per_thread;
+    for (int64_t i = 0; i < per_thread; ++i) gp[i] += a[i];
+  }
+  int64_t off = 0;
+  auto take = [&](int64_t n, at::IntArrayRef shape) {
+    at::Tensor t = g_all.narrow(0, off, n).view(shape);
+    off += n;
+    return t;
+  };
+  at::Tensor g_a = take(n_a, {S, W, Kp});
+  at::Tensor g_w = take(n_w, {L, W, W});
+  at::Tensor g_b = take(n_b, {L + 1, W});
+  at::Tensor g_wo = take(n_wo, {O, W});
+  at::Tensor g_bo = take(O, {O});
+  return {g_x, g_a, g_w, g_b, g_wo, g_bo};
+}
+
+}  // namespace
+
+TORCH_LIBRARY_FRAGMENT(splatfields_cpu, m) {
+  m.def("head_forward", &head_forward);
+  m.def("head_backward", &head_backward);
+  m.def("head_available", &head_available);
+}

@@ -1,0 +1,162 @@
+"""A field head's layers as one AMX-BF16 kernel (``csrc/head_amx.cpp``).
+
+A head of the fused path reads its input row ``x = [f, PE(x)]`` [N, K] at its first linear and at each
+skip linear, runs equal-width ReLU layers and ends in a narrow linear output:
+
+    h_0 = ReLU(x A_0ᵀ + b_0),   h_l = ReLU(h_{l-1} W_lᵀ [+ x A_sᵀ at a skip layer] + b_l)   (l = 1..L),
+    y   = h_L W_outᵀ + b_out                                                               [N, O] float32.
+
+``head_mlp(x, a, hidden, bias, reads_x, w_out, b_out)`` returns y. With ``fast=False`` it is the same
+function through oneDNN, one layer at a time (the slow reference; under autocast its products run in
+bf16 as the kernel's do), which ``tests/test_head_kernel.py`` compares with the kernel, values and
+gradients, both against float64 autograd. The kernel's products round their operands to bf16 and
+accumulate in float32, as oneDNN's do under CPU bf16 autocast; the output layer runs in float32 on the
+bf16 h_L, as the fused path's float32 output layers do. Every gradient comes back in its input's dtype.
+
+The kernel runs only on CPUs with AMX-BF16 tiles (``cpu_has_amx``); ``model.network.head_kernel``
+(``auto | on | off``) chooses it (``auto``: wherever the fused heads run in bf16 on such a CPU).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+AMX_FLAGS = ("amx_bf16", "amx_tile", "avx512_bf16")
+
+log = logging.getLogger(__name__)
+
+
+@functools.cache
+def cpu_has_amx() -> bool:
+    """True when /proc/cpuinfo reports AMX-BF16 tiles and AVX512-BF16 (what the kernel is built for)."""
+    try:
+        words = set(Path("/proc/cpuinfo").read_text().split())
+    except OSError:
+        return False
+    return all(f in words for f in AMX_FLAGS)
+
+
+@functools.cache
+def head_kernel_ready() -> bool:
+    """True when this process can run the kernel: an AMX CPU, the extension built, tile use permitted."""
+    return cpu_has_amx() and bool(_ops().head_available())
+
+
+def resolve_head_kernel(mode: bool | str, bf16: bool) -> bool:
+    """Whether to run each head's layers through the kernel.
+
+    Args:
+        mode: ``"auto"`` (where ``bf16`` and the CPU has AMX; a failed build warns and falls back), ``"on"``/True
+            (error if it cannot run), ``"off"``/False.
+        bf16: the fused heads run their products in bf16 (``autocast_bf16`` resolved).
+    """
+    if mode in (False, "off", "false"):
+        return False
+    if mode in (True, "on", "true"):
+        if not cpu_has_amx():
+            raise RuntimeError("model.network.head_kernel=on needs a CPU with AMX-BF16 tiles and AVX512-BF16 "
+                               f"(/proc/cpuinfo flags {', '.join(AMX_FLAGS)}); use head_kernel=auto or off")
+        if not head_kernel_ready():
+            raise RuntimeError("model.network.head_kernel=on: Linux did not grant this process the AMX tile state "
+                               "(arch_prctl ARCH_REQ_XCOMP_PERM); use head_kernel=auto or off")
+        return True
+    if mode != "auto":
+        raise ValueError(f"model.network.head_kernel must be auto, on or off, got {mode!r}")
+    if not (bf16 and cpu_has_amx()):
+        return False
+    try:
+        return head_kernel_ready()
+    except RuntimeError as exc:  # the build failed (e.g. a compiler without AMX intrinsics): the oneDNN layers
+        log.warning("head_kernel=auto: the AMX head kernel is unavailable, using the oneDNN layers (%s)", exc)
+        return False
+
+
+def pack_in(w: Tensor) -> Tensor:
+    """[out, in] weight -> bf16 pack "VNNI over input" [in/2, out, 2] (p[k, o, j] = W[o, 2k + j])."""
+    o, i = w.shape
+    return w.detach().to(torch.bfloat16).reshape(o, i // 2, 2).permute(1, 0, 2).contiguous()
+
+
+def pack_out(w: Tensor) -> Tensor:
+    """[out, in] weight -> bf16 pack "VNNI over output" [out/2, in, 2] (p[k, i, j] = W[2k + j, i])."""
+    o, i = w.shape
+    return w.detach().to(torch.bfloat16).reshape(o // 2, 2, i).permute(0, 2, 1).contiguous()
+
+
+def _padded(w: Tensor) -> Tensor:
+    """[W, K] input weight zero-padded to [W, Kp] (Kp: K rounded up to the tiles' 32 columns)."""
+    return F.pad(w.detach(), (0, -w.shape[1] % 32))
+
+
+def _ops():
+    """The kernel's ops (``torch.ops.splatfields_cpu``), built and loaded once per process (the compiled-extension
+    builder of the CPU rasterizer, ``src/rasterizer/_build.py``, builds it too)."""
+    from src.rasterizer._build import load_head_extension
+
+    return load_head_extension()
+
+
+class _Head(torch.autograd.Function):
+    """y of one head; inputs (x, (n_a, L, reads_x), *a, *hidden, *bias, w_out, b_out). See the module docstring."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, meta: tuple[int, int, tuple[int, ...]], *params: Tensor) -> Tensor:
+        n_a, n_h, reads_x = meta
+        a, hidden, bias = params[:n_a], params[n_a: n_a + n_h], params[n_a + n_h: n_a + 2 * n_h + 1]
+        w_out, b_out = params[-2], params[-1]
+        bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
+        w_out32 = w_out.detach().float().contiguous()  # [O, W]
+        y, H = _ops().head_forward(x.detach(), [pack_in(_padded(w)) for w in a], [pack_in(w) for w in hidden],
+                                   bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous())
+        ctx.save_for_backward(x, w_out32, *H, *a, *hidden)
+        ctx.meta = (meta, [p.dtype for p in params])
+        return y
+
+    @staticmethod
+    def backward(ctx, g_y: Tensor):
+        (n_a, n_h, reads_x), dtypes = ctx.meta
+        x, w_out32, *rest = ctx.saved_tensors
+        H, a, hidden = rest[: n_h + 1], rest[n_h + 1: n_h + 1 + n_a], rest[n_h + 1 + n_a:]
+        g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
+            g_y.float().contiguous(), x, H, [pack_out(_padded(w)) for w in a], [pack_out(w) for w in hidden],
+            list(reads_x), w_out32)
+        k = x.shape[1]
+        grads = [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
+        return (g_x.to(x.dtype), None, *[g.to(dt) for g, dt in zip(grads, dtypes, strict=True)])
+
+
+def head_mlp(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Sequence[Tensor],
+             reads_x: Sequence[int], w_out: Tensor, b_out: Tensor, fast: bool = True) -> Tensor:
+    """y = h_L W_outᵀ + b_out of one head (module docstring) -> [N, O] float32.
+
+    Args:
+        x: [N, K] input row (float32 or bf16; rows may be strided).
+        a: input weights [W, K]: the first layer's, then each skip layer's ([out, in], float32 masters).
+        hidden: L weights [W, W] of layers 1..L (at a skip layer: the part that reads h).
+        bias: L + 1 biases [W] of layers 0..L.
+        reads_x: L + 1 indices into ``a``: the input weight layer l adds (-1: none; layer 0 reads ``a[0]``).
+        w_out, b_out: the output layer, [O, W] and [O].
+        fast: the AMX kernel (needs ``head_kernel_ready()``); False: the oneDNN reference, one layer at a
+            time (bf16 products under autocast, the output layer in the masters' dtype).
+    """
+    if reads_x[0] != 0 or len(reads_x) != len(hidden) + 1 or len(bias) != len(hidden) + 1:
+        raise ValueError(f"head_mlp: {len(hidden)} hidden layers need {len(hidden) + 1} biases and reads_x "
+                         f"starting at 0, got {len(bias)} and {list(reads_x)}")
+    if fast:
+        meta = (len(a), len(hidden), tuple(int(r) for r in reads_x))
+        return _Head.apply(x, meta, *a, *hidden, *bias, w_out, b_out)
+    h = torch.relu(F.linear(x, a[0], bias[0]))  # [N, W]
+    for l, w in enumerate(hidden, start=1):
+        z = F.linear(h, w, bias[l])
+        if reads_x[l] >= 0:
+            z = z + F.linear(x, a[reads_x[l]])
+        h = torch.relu(z)
+    with torch.autocast(x.device.type, enabled=False):  # in the masters' dtype (float32; float64 in checks)
+        return F.linear(h.to(w_out.dtype), w_out, b_out)
