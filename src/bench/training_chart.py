@@ -29,10 +29,12 @@ PART_COLORS = {  # split key -> (legend label, colour)
 
 
 def _label(row: dict) -> str:
-    """The bar's name: the method, with its variant when the row is one."""
-    extra = [f"{row['plane_px']} px planes" if row.get("plane_blocks") is not None and row.get("overrides") else "",
-             f"width {row['head_width']}" if row.get("head_width") is not None and row.get("overrides") else "",
-             f"compiled ({row['compile']})" if row.get("compile") else ""]
+    """The bar's name: the method, with its variant when the row is one (the overrides it was measured with)."""
+    over = " ".join(row.get("overrides") or [])
+    extra = [f"{row['plane_px']} px planes" if "triplane_up_blocks" in over else "",
+             f"width {row['head_width']}" if "head_width" in over else "",
+             f"compiled ({row['compile']})" if row.get("compile") else "",
+             f"head kernel {'on' if row.get('head_kernel') else 'off'}" if "head_kernel" in over else ""]
     return " ".join([row["method"], *[e for e in extra if e]])
 
 
