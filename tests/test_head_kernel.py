@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from src.fields import CNNTriplaneBackbone, OffsetFlow, SplatFieldNetwork
-from src.fields.head_kernel import cpu_has_amx, head_mlp, pack_in, pack_out, resolve_head_kernel
+from src.fields.head_kernel import BLOCK_ROWS, cpu_has_amx, head_mlp, pack_in, pack_out, resolve_head_kernel
 
 amx = pytest.mark.skipif(not cpu_has_amx(), reason="needs a CPU with AMX-BF16 tiles")
 
@@ -34,7 +34,7 @@ def _problem(n: int, k: int, width: int, n_hidden: int, skip_at: int | None, n_o
     return x, a, hidden, bias, reads, w_out, b_out, grad
 
 
-def _run(problem, mode: str) -> list[torch.Tensor]:
+def _run(problem, mode: str, rows: tuple[int, int] = BLOCK_ROWS) -> list[torch.Tensor]:
     """(y, grads of x, a, hidden, bias, w_out, b_out) by 'kernel', 'onednn' (bf16 reference) or 'float64'."""
     x, a, hidden, bias, reads, w_out, b_out, grad = problem
     dt = torch.float64 if mode == "float64" else None
@@ -45,7 +45,7 @@ def _run(problem, mode: str) -> list[torch.Tensor]:
         y = head_mlp(x_, a_, h_, b_, reads, params[-2], params[-1], fast=False)
     else:
         with torch.autocast("cpu", dtype=torch.bfloat16):
-            y = head_mlp(x_, a_, h_, b_, reads, params[-2], params[-1], fast=mode == "kernel")
+            y = head_mlp(x_, a_, h_, b_, reads, params[-2], params[-1], fast=mode == "kernel", block_rows=rows)
     assert y.dtype == (torch.float64 if mode == "float64" else torch.float32)
     (y.double() * grad.double()).sum().backward()
     assert all(p.grad.dtype == p.dtype for p in params)
@@ -57,16 +57,17 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 @amx
-@pytest.mark.parametrize("k,width,n_hidden,skip_at,n_out,x_dtype", [
-    (75, 128, 6, 4, 3, torch.bfloat16),  # the deform head (8 linears, skip into linear 4), bf16 input row
-    (75, 64, 3, None, 4, torch.float32),  # a 64-wide head, float32 input row
-    (40, 32, 0, None, 1, torch.float32),  # input and output layers only
-    (96, 64, 2, 2, 33, torch.float32),    # an input row of whole tiles, a skip into the last hidden layer
+@pytest.mark.parametrize("k,width,n_hidden,skip_at,n_out,x_dtype,rows", [
+    (75, 128, 6, 4, 3, torch.bfloat16, BLOCK_ROWS),  # the deform head (8 linears, skip into 4), bf16 input row
+    (75, 128, 6, 4, 3, torch.bfloat16, (256, 32)),   # other block sizes
+    (75, 64, 3, None, 4, torch.float32, BLOCK_ROWS),  # a 64-wide head, float32 input row
+    (40, 32, 0, None, 1, torch.float32, (64, 64)),    # input and output layers only
+    (96, 64, 2, 2, 33, torch.float32, BLOCK_ROWS),    # an input row of whole tiles, a skip into the last hidden layer
 ])
-def test_kernel_as_accurate_as_the_onednn_bf16_reference(k, width, n_hidden, skip_at, n_out, x_dtype):
-    problem = _problem(1000 + 13, k, width, n_hidden, skip_at, n_out, x_dtype)  # N not a multiple of 32
+def test_kernel_as_accurate_as_the_onednn_bf16_reference(k, width, n_hidden, skip_at, n_out, x_dtype, rows):
+    problem = _problem(1000 + 13, k, width, n_hidden, skip_at, n_out, x_dtype)  # N not a multiple of any block
     truth = _run(problem, "float64")
-    kern = _run(problem, "kernel")
+    kern = _run(problem, "kernel", rows)
     ref = _run(problem, "onednn")
     names = ["y", "d x", *[f"d A{i}" for i in range(1 + (skip_at is not None))],
              *[f"d W{i + 1}" for i in range(n_hidden)], *[f"d b{i}" for i in range(n_hidden + 1)], "d W_out", "d b_out"]
@@ -142,11 +143,14 @@ def test_auto_falls_back_when_the_kernel_cannot_be_built(monkeypatch, caplog):
 
 
 @amx
-def test_kernel_rejects_a_width_it_cannot_tile():
-    """A width that is not a multiple of 32 is one clear error, not a wrong result."""
+def test_kernel_rejects_a_width_or_block_it_cannot_tile():
+    """A width or a block size that is not a multiple of 32 is one clear error, not a wrong result."""
     x, a, hidden, bias, reads, w_out, b_out, _ = _problem(40, 16, 48, 1, None, 3, torch.float32)
     with pytest.raises(RuntimeError, match="width 48 must be a multiple of 32"):
         head_mlp(x, a, hidden, bias, reads, w_out, b_out)
+    x, a, hidden, bias, reads, w_out, b_out, _ = _problem(40, 16, 32, 1, None, 3, torch.float32)
+    with pytest.raises(RuntimeError, match="block_rows 48 must be 32, 64"):
+        head_mlp(x, a, hidden, bias, reads, w_out, b_out, block_rows=(48, 32))
 
 
 def _network_errors(head_kernel: bool) -> dict[str, float]:

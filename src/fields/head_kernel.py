@@ -29,6 +29,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 AMX_FLAGS = ("amx_bf16", "amx_tile", "avx512_bf16")
+# splats per block of the kernel's forward and backward (32, 64, ..., 256): larger blocks reload the backward's
+# float32 weight-gradient tiles less often (measured 0.80x the backward's time at 128 against 32, one process)
+# and the forward's products gain nothing from them (32: 0.95x the forward's time at 128)
+BLOCK_ROWS = (32, 128)
 
 log = logging.getLogger(__name__)
 
@@ -104,36 +108,38 @@ def _ops():
 
 
 class _Head(torch.autograd.Function):
-    """y of one head; inputs (x, (n_a, L, reads_x), *a, *hidden, *bias, w_out, b_out). See the module docstring."""
+    """y of one head; inputs (x, (n_a, L, reads_x, block_rows), *a, *hidden, *bias, w_out, b_out). See the module
+    docstring."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, meta: tuple[int, int, tuple[int, ...]], *params: Tensor) -> Tensor:
-        n_a, n_h, reads_x = meta
+    def forward(ctx, x: Tensor, meta: tuple[int, int, tuple[int, ...], tuple[int, int]], *params: Tensor) -> Tensor:
+        n_a, n_h, reads_x, rows = meta
         a, hidden, bias = params[:n_a], params[n_a: n_a + n_h], params[n_a + n_h: n_a + 2 * n_h + 1]
         w_out, b_out = params[-2], params[-1]
         bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
         w_out32 = w_out.detach().float().contiguous()  # [O, W]
         y, H = _ops().head_forward(x.detach(), [pack_in(_padded(w)) for w in a], [pack_in(w) for w in hidden],
-                                   bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous())
+                                   bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
         ctx.save_for_backward(x, w_out32, *H, *a, *hidden)
         ctx.meta = (meta, [p.dtype for p in params])
         return y
 
     @staticmethod
     def backward(ctx, g_y: Tensor):
-        (n_a, n_h, reads_x), dtypes = ctx.meta
+        (n_a, n_h, reads_x, rows), dtypes = ctx.meta
         x, w_out32, *rest = ctx.saved_tensors
         H, a, hidden = rest[: n_h + 1], rest[n_h + 1: n_h + 1 + n_a], rest[n_h + 1 + n_a:]
         g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
             g_y.float().contiguous(), x, H, [pack_out(_padded(w)) for w in a], [pack_out(w) for w in hidden],
-            list(reads_x), w_out32)
+            list(reads_x), w_out32, rows[1])
         k = x.shape[1]
         grads = [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
         return (g_x.to(x.dtype), None, *[g.to(dt) for g, dt in zip(grads, dtypes, strict=True)])
 
 
 def head_mlp(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Sequence[Tensor],
-             reads_x: Sequence[int], w_out: Tensor, b_out: Tensor, fast: bool = True) -> Tensor:
+             reads_x: Sequence[int], w_out: Tensor, b_out: Tensor, fast: bool = True,
+             block_rows: tuple[int, int] = BLOCK_ROWS) -> Tensor:
     """y = h_L W_outᵀ + b_out of one head (module docstring) -> [N, O] float32.
 
     Args:
@@ -145,12 +151,13 @@ def head_mlp(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Seq
         w_out, b_out: the output layer, [O, W] and [O].
         fast: the AMX kernel (needs ``head_kernel_ready()``); False: the oneDNN reference, one layer at a
             time (bf16 products under autocast, the output layer in the masters' dtype).
+        block_rows: splats per block of the kernel's forward and backward (each 32, 64, ..., 256).
     """
     if reads_x[0] != 0 or len(reads_x) != len(hidden) + 1 or len(bias) != len(hidden) + 1:
         raise ValueError(f"head_mlp: {len(hidden)} hidden layers need {len(hidden) + 1} biases and reads_x "
                          f"starting at 0, got {len(bias)} and {list(reads_x)}")
     if fast:
-        meta = (len(a), len(hidden), tuple(int(r) for r in reads_x))
+        meta = (len(a), len(hidden), tuple(int(r) for r in reads_x), (int(block_rows[0]), int(block_rows[1])))
         return _Head.apply(x, meta, *a, *hidden, *bias, w_out, b_out)
     h = torch.relu(F.linear(x, a[0], bias[0]))  # [N, W]
     for l, w in enumerate(hidden, start=1):

@@ -8,8 +8,8 @@
 //
 // Evaluated layer by layer through oneDNN, every layer writes and re-reads [N, W] activations, the input
 // layers write one wide [N, S] product that the backward gathers again, the output layer runs on a float32
-// copy of h_L, and the backward runs separate passes for masks, bias sums and products. Here a block of 32
-// splats goes through ALL layers while it sits in cache: per layer 16-row AMX tiles against the packed
+// copy of h_L, and the backward runs separate passes for masks, bias sums and products. Here a block of
+// splats (block_rows: 32..256) goes through ALL layers while it sits in cache: per layer 16-row AMX tiles against the packed
 // weights, bias and ReLU applied on the float32 tile result, rounded to bf16 as the next layer's input; the
 // output layer in float32 FMAs on the bf16 h_L. Only the activations h_0..h_L leave the cache (bf16, one
 // [N, W] tensor per layer), for the backward. The backward walks the same blocks from y down to x: output
@@ -41,8 +41,6 @@
 
 namespace {
 
-constexpr int kRows = 32;  // splats per block, a multiple of 32 (pairs of 16-row tiles): 64, 128 and 256 measured
-                           // no faster on the weight-gradient products whose float32 tiles they reload less often
 
 // 64-byte aligned per-thread scratch of n elements of T, freed at scope exit.
 template <typename T>
@@ -195,10 +193,10 @@ uint16_t* bf16_ptr_mut(at::Tensor& t) { return reinterpret_cast<uint16_t*>(t.dat
 
 inline float hsum(__m512 v) { return _mm512_reduce_add_ps(v); }
 
-// Rows r0 .. r0+nr of x [N, K] into xb [kRows, Kp] bf16 (columns K..Kp and rows nr..kRows zero).
-void load_x_block(const RowSource& xs, int64_t r0, int nr, int K, int Kp, uint16_t* xb) {
+// Rows r0 .. r0+nr of x [N, K] into xb [rows, Kp] bf16 (columns K..Kp and rows nr..rows zero).
+void load_x_block(const RowSource& xs, int64_t r0, int nr, int rows, int K, int Kp, uint16_t* xb) {
   const __m512 zero = _mm512_setzero_ps();
-  for (int r = 0; r < kRows; ++r) {
+  for (int r = 0; r < rows; ++r) {
     for (int c = 0; c < Kp; c += 32) {
       __m512 lo = zero, hi = zero;
       if (r < nr) {
@@ -210,9 +208,9 @@ void load_x_block(const RowSource& xs, int64_t r0, int nr, int K, int Kp, uint16
   }
 }
 
-// VNNI over rows of a [kRows, C] bf16 block (row stride ld, rows >= nr zero): dst[k][i][j] = src[2k+j][i].
-void vnni_rows(const uint16_t* src, int64_t ld, int nr, int C, uint16_t* dst) {
-  for (int k = 0; k < kRows / 2; ++k) {
+// VNNI over rows of a [rows, C] bf16 block (row stride ld, rows >= nr zero): dst[k][i][j] = src[2k+j][i].
+void vnni_rows(const uint16_t* src, int64_t ld, int nr, int rows, int C, uint16_t* dst) {
+  for (int k = 0; k < rows / 2; ++k) {
     const int ra = 2 * k, rb = 2 * k + 1;
     for (int i = 0; i < C; i += 16) {
       const __m512i a = ra < nr ? load16_u32(src + ra * ld + i) : _mm512_setzero_si512();
@@ -248,6 +246,13 @@ Shape check_head(const at::Tensor& x, int64_t n_x, int64_t L, const std::vector<
   return s;
 }
 
+// Splats per block: a multiple of 32 (pairs of 16-row tiles), at most 256.
+int check_rows(int64_t block_rows, const char* fn) {
+  TORCH_CHECK(block_rows >= 32 && block_rows <= 256 && block_rows % 32 == 0, fn, ": block_rows ", block_rows,
+              " must be 32, 64, ..., 256");
+  return static_cast<int>(block_rows);
+}
+
 void check_pack(const at::Tensor& p, int64_t numel, const char* fn, const char* what, int64_t i) {
   TORCH_CHECK(p.scalar_type() == at::kBFloat16 && p.is_contiguous() && p.numel() == numel, fn, ": ", what, " ", i,
               " must be a contiguous bf16 pack of ", numel, " elements, got ", p.numel());
@@ -260,8 +265,9 @@ void check_pack(const at::Tensor& p, int64_t numel, const char* fn, const char* 
 // reuses between steps, where one [L+1, N, W] block would be mapped afresh).
 std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
     const at::Tensor& x, std::vector<at::Tensor> a_in, std::vector<at::Tensor> w_in, const at::Tensor& bias,
-    std::vector<int64_t> reads_x, const at::Tensor& w_out, const at::Tensor& b_out) {
+    std::vector<int64_t> reads_x, const at::Tensor& w_out, const at::Tensor& b_out, int64_t block_rows) {
   const char* fn = "head_forward";
+  const int rows = check_rows(block_rows, fn);
   const Shape s = check_head(x, static_cast<int64_t>(a_in.size()), static_cast<int64_t>(w_in.size()), reads_x, w_out, fn);
   const int64_t N = s.N;
   const int K = s.K, Kp = s.Kp, W = s.W, L = s.L, O = s.O;
@@ -290,25 +296,25 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
   at::Tensor y = at::empty({N, O}, x.options().dtype(at::kFloat));
   float* yp = y.data_ptr<float>();
   const RowSource xs(x);
-  const int64_t n_blocks = (N + kRows - 1) / kRows;
+  const int64_t n_blocks = (N + rows - 1) / rows;
   const __m512 zero = _mm512_setzero_ps();
   const int nt = std::max(1, at::get_num_threads());  // torch's thread count (threads=1 runs stay on one core)
 #pragma omp parallel num_threads(nt)
   {
     load_tile_config();
-    Scratch<uint16_t> xb(kRows * 256);  // the block's input [kRows, Kp] bf16
-    Scratch<uint16_t> hb(kRows * 256);  // current activations [kRows, W] bf16 (W <= 256)
-    Scratch<float> cf(kRows * 256);     // product result [kRows, W] float32
+    Scratch<uint16_t> xb(rows * 256);  // the block's input [rows, Kp] bf16
+    Scratch<uint16_t> hb(rows * 256);  // current activations [rows, W] bf16 (W <= 256)
+    Scratch<float> cf(rows * 256);     // product result [rows, W] float32
 #pragma omp for schedule(static)
     for (int64_t b = 0; b < n_blocks; ++b) {
-      const int64_t r0 = b * kRows;
-      const int nr = static_cast<int>(std::min<int64_t>(kRows, N - r0));
-      load_x_block(xs, r0, nr, K, Kp, xb);
+      const int64_t r0 = b * rows;
+      const int nr = static_cast<int>(std::min<int64_t>(rows, N - r0));
+      load_x_block(xs, r0, nr, rows, K, Kp, xb);
       for (int l = 0; l <= L; ++l) {
-        if (l > 0) gemm(hb, W, wp[l - 1], W, W, cf, W, kRows, false);
-        if (reads_x[l] >= 0) gemm(xb, Kp, ap[reads_x[l]], Kp, W, cf, W, kRows, l > 0);
+        if (l > 0) gemm(hb, W, wp[l - 1], W, W, cf, W, rows, false);
+        if (reads_x[l] >= 0) gemm(xb, Kp, ap[reads_x[l]], Kp, W, cf, W, rows, l > 0);
         const float* bl = bp + static_cast<int64_t>(l) * W;
-        for (int r = 0; r < kRows; ++r) {
+        for (int r = 0; r < rows; ++r) {
           for (int o = 0; o < W; o += 32) {
             const __m512 lo = _mm512_add_ps(load16(cf + r * W + o), load16(bl + o));
             const __m512 hi = _mm512_add_ps(load16(cf + r * W + o + 16), load16(bl + o + 16));
@@ -336,8 +342,9 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
 // g_w_out [O, W], g_b_out [O]), all float32.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> head_backward(
     const at::Tensor& g_y, const at::Tensor& x, std::vector<at::Tensor> H, std::vector<at::Tensor> a_out,
-    std::vector<at::Tensor> w_packs, std::vector<int64_t> reads_x, const at::Tensor& w_out) {
+    std::vector<at::Tensor> w_packs, std::vector<int64_t> reads_x, const at::Tensor& w_out, int64_t block_rows) {
   const char* fn = "head_backward";
+  const int rows = check_rows(block_rows, fn);
   const Shape s = check_head(x, static_cast<int64_t>(a_out.size()), static_cast<int64_t>(w_packs.size()), reads_x, w_out, fn);
   const int64_t N = s.N;
   const int K = s.K, Kp = s.Kp, W = s.W, L = s.L, O = s.O;
@@ -372,7 +379,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const int64_t per_thread = n_a + n_w + n_b + n_wo + O;
   std::vector<float> acc(static_cast<size_t>(n_threads) * per_thread, 0.0f);
   const RowSource xs(x);
-  const int64_t n_blocks = (N + kRows - 1) / kRows;
+  const int64_t n_blocks = (N + rows - 1) / rows;
   const __m512 zero = _mm512_setzero_ps();
 #pragma omp parallel num_threads(n_threads)
   {
@@ -382,20 +389,20 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     float* gb_t = gw_t + n_w;
     float* gwo_t = gb_t + n_b;
     float* gbo_t = gwo_t + n_wo;
-    Scratch<float> g(kRows * 256);         // gradient of the current layer's output [kRows, W] float32
-    Scratch<uint16_t> gpb(kRows * 256);    // masked gradient, bf16 row-major [kRows, W]
-    Scratch<uint16_t> gpt(256 * kRows);    // masked gradient, bf16 transposed [W, kRows]
-    Scratch<uint16_t> hv(kRows * 256);     // a layer's input, VNNI over rows [kRows / 2, W, 2]
-    Scratch<uint16_t> xb(kRows * 256);     // the block's x [kRows, Kp] bf16
-    Scratch<uint16_t> xv(kRows * 256);     // x VNNI over rows [kRows / 2, Kp, 2]
-    Scratch<float> gx(kRows * 256);        // the block's x gradient [kRows, Kp] float32
+    Scratch<float> g(rows * 256);         // gradient of the current layer's output [rows, W] float32
+    Scratch<uint16_t> gpb(rows * 256);    // masked gradient, bf16 row-major [rows, W]
+    Scratch<uint16_t> gpt(256 * rows);    // masked gradient, bf16 transposed [W, rows]
+    Scratch<uint16_t> hv(rows * 256);     // a layer's input, VNNI over rows [rows / 2, W, 2]
+    Scratch<uint16_t> xb(rows * 256);     // the block's x [rows, Kp] bf16
+    Scratch<uint16_t> xv(rows * 256);     // x VNNI over rows [rows / 2, Kp, 2]
+    Scratch<float> gx(rows * 256);        // the block's x gradient [rows, Kp] float32
 #pragma omp for schedule(static)
     for (int64_t b = 0; b < n_blocks; ++b) {
-      const int64_t r0 = b * kRows;
-      const int nr = static_cast<int>(std::min<int64_t>(kRows, N - r0));
+      const int64_t r0 = b * rows;
+      const int nr = static_cast<int>(std::min<int64_t>(rows, N - r0));
       const uint16_t* HL = Hp[L] + r0 * W;
       // output layer: g = g_y W_out (rows >= nr zero), g_W_out += g_yᵀ h_L, g_b_out += Σ g_y
-      for (int r = 0; r < kRows; ++r) {
+      for (int r = 0; r < rows; ++r) {
         for (int i = 0; i < W; i += 16) {
           __m512 v = zero;
           if (r < nr)
@@ -413,13 +420,13 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         for (int r = 0; r < nr; ++r) sb += gyp[(r0 + r) * O + o];
         gbo_t[o] += sb;
       }
-      load_x_block(xs, r0, nr, K, Kp, xb);
-      vnni_rows(xb, Kp, kRows, Kp, xv);
-      std::memset(gx, 0, sizeof(float) * kRows * Kp);
+      load_x_block(xs, r0, nr, rows, K, Kp, xb);
+      vnni_rows(xb, Kp, rows, rows, Kp, xv);
+      std::memset(gx, 0, sizeof(float) * rows * Kp);
       for (int l = L; l >= 0; --l) {
         const uint16_t* Hl = Hp[l] + r0 * W;
         // mask by h_l > 0 (pad rows: zero): float32 in place in g, bf16-rounded in gpb; bias sum
-        for (int r = 0; r < kRows; ++r) {
+        for (int r = 0; r < rows; ++r) {
           for (int o = 0; o < W; o += 32) {
             __m512 lo = zero, hi = zero;
             if (r < nr) {
@@ -438,9 +445,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
           for (int r = 0; r < nr; ++r) v = _mm512_add_ps(v, load16(g + r * W + o));
           _mm512_storeu_ps(gb + o, v);
         }
-        // transpose the masked gradient to [W, kRows], bf16 (16 x 16 float32 blocks, 32 rows at a time)
+        // transpose the masked gradient to [W, rows], bf16 (16 x 16 float32 blocks, 32 rows at a time)
         for (int ob = 0; ob < W; ob += 16) {
-          for (int rp = 0; rp < kRows; rp += 32) {
+          for (int rp = 0; rp < rows; rp += 32) {
             __m512 lo[16], hi[16];
             for (int r = 0; r < 16; ++r) {
               lo[r] = load16(g + (rp + r) * W + ob);
@@ -448,18 +455,18 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
             }
             transpose16x16(lo);
             transpose16x16(hi);
-            for (int o = 0; o < 16; ++o) store32_bf16(gpt + (ob + o) * kRows + rp, lo[o], hi[o]);
+            for (int o = 0; o < 16; ++o) store32_bf16(gpt + (ob + o) * rows + rp, lo[o], hi[o]);
           }
         }
         if (reads_x[l] >= 0) {
           const int si = static_cast<int>(reads_x[l]);
-          gemm(gpt, kRows, xv, kRows, Kp, ga_t + static_cast<int64_t>(si) * W * Kp, Kp, W, true);  // g_A += gᵀ x
-          gemm(gpb, W, ap[si], W, Kp, gx, Kp, kRows, true);                                      // g_x += g A
+          gemm(gpt, rows, xv, rows, Kp, ga_t + static_cast<int64_t>(si) * W * Kp, Kp, W, true);  // g_A += gᵀ x
+          gemm(gpb, W, ap[si], W, Kp, gx, Kp, rows, true);                                      // g_x += g A
         }
         if (l == 0) break;
-        vnni_rows(Hp[l - 1] + r0 * W, W, nr, W, hv);
-        gemm(gpt, kRows, hv, kRows, W, gw_t + static_cast<int64_t>(l - 1) * W * W, W, W, true);  // g_W += gᵀ h
-        gemm(gpb, W, wp[l - 1], W, W, g, W, kRows, false);                                      // g_h = g W
+        vnni_rows(Hp[l - 1] + r0 * W, W, nr, rows, W, hv);
+        gemm(gpt, rows, hv, rows, W, gw_t + static_cast<int64_t>(l - 1) * W * W, W, W, true);  // g_W += gᵀ h
+        gemm(gpb, W, wp[l - 1], W, W, g, W, rows, false);                                      // g_h = g W
       }
       for (int r = 0; r < nr; ++r) std::memcpy(gxp + (r0 + r) * K, gx + r * Kp, sizeof(float) * K);
     }
