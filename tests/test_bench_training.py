@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, main, output_path
+from src.bench.training import DEFAULT_OUT, PARTS, SPLIT, faster_row, main, output_path
 
 
 def _tiny_bench(tmp_path, capsys, n_splats: int, *variant: str) -> list[dict]:
@@ -126,6 +126,22 @@ def test_fused_linear_relu_flops_match_a_hand_count(with_r):
     r = torch.randn(n, d_out, requires_grad=True) if with_r else None
     counted = count_flops(lambda: linear_relu(h, w, b, r).sum().backward())
     assert counted == {"total": 3 * 2 * n * d_in * d_out, "conv": 0, "matmul": 3 * 2 * n * d_in * d_out}
+
+
+def test_repeated_rows_keep_their_fastest_run(tmp_path, capsys):
+    rows = _tiny_bench(tmp_path, capsys, 300, "--repeat", "2")
+    assert [r["method"] for r in rows] == ["gs3d", "splatfields3d"]
+    for r in rows:
+        assert len(r["iter_ms_runs"]) == 2 and r["iter_ms"] == min(r["iter_ms_runs"])
+        assert r["ratio_vs_gs3d"] == r["iter_ms"] / rows[0]["iter_ms"]  # ratios from the kept runs
+
+
+def test_faster_row_never_keeps_a_failed_run():
+    ok, slow, failed = {"iter_ms": 80.0, "k": "a"}, {"iter_ms": 100.0, "k": "b"}, {"error": "killed"}
+    assert faster_row(slow, ok) == {**ok, "iter_ms_runs": [100.0, 80.0]}
+    assert faster_row(faster_row(slow, ok), failed)["iter_ms_runs"] == [100.0, 80.0]
+    assert faster_row(failed, slow) == {**slow, "iter_ms_runs": [100.0]}
+    assert "error" in faster_row(failed, failed)
 
 
 def test_a_quick_run_does_not_replace_the_kept_result():

@@ -56,6 +56,7 @@ def test_tables_valid_keys_still_work(sweep):
     ("training", ["--methods", "gs3d,nope"], "unknown method(s) nope"),
     ("training", ["--sizes", "10k"], "--sizes '10k': expected comma-separated positive splat counts"),
     ("training", ["--iters", "0"], "--iters 0: expected a positive number"),
+    ("training", ["--repeat", "0"], "--repeat 0: expected 1 or more measurements per row"),
     ("training", ["--head-widths", "-4"], "--head-widths '-4': expected comma-separated positive widths"),
     ("training", ["--plane-blocks", "two"], "--plane-blocks 'two': expected comma-separated positive up-sampling"),
     ("training", ["--plane-blocks", "0"], "--plane-blocks '0': expected comma-separated positive up-sampling"),
