@@ -14,8 +14,11 @@ with fewer PE levels than the group's maximum reads a prefix of PE_Lmax (the lay
 [x, sin f0 x, cos f0 x, sin f1 x, ...]); its weight is zero-padded. The hidden and output layers then
 run per head, the skip layers as ``addmm(U_skip, h, W_hᵀ)`` without concatenating [N, in + width]
 tensors, and every hidden ReLU layer through ``linear_relu`` (bias and ReLU in the product's
-epilogue). The parameters are the heads' own (state dicts unchanged); the fused weights are
-concatenated from them on every call (a few kB), so gradients reach every head as before.
+epilogue). On CPUs with AMX-BF16 tiles (``model.network.head_kernel``) a head instead runs whole, from
+the group's input row ``[f, PE_Lmax(x)]`` to its output, as one kernel (``kernel_head``,
+``src.fields.head_kernel``); ``head_outputs`` sends each head of a group one way or the other. The
+parameters are the heads' own (state dicts unchanged); the fused weights are concatenated from them on
+every call (a few kB), so gradients reach every head as before.
 
 The slow reference is ``FieldMLP.forward`` on explicit concatenations; ``tests/test_fused_heads.py``
 checks that both agree in float64 (values and gradients).
@@ -102,7 +105,8 @@ def input_layer(heads: Sequence[HeadInput], x: Tensor, t_enc: Tensor | None) -> 
 
 def kernel_fits(mlp: FieldMLP) -> bool:
     """True when ``mlp`` can run as one ``head_mlp`` kernel: ReLU, width 32k <= 256, no skip into the output
-    linear, a narrow output (<= 64), no output quirk (a view-dependent colour head's extra input: see callers)."""
+    linear, a narrow output (<= 64), no output quirk. (A head whose last layer reads an extra input, the
+    view-dependent colour head, cannot either: the caller checks that.)"""
     last = mlp.n_layers - 1
     return (mlp.activation == "relu" and mlp.n_layers >= 2 and mlp.width % 32 == 0 and mlp.width <= 256
             and last not in mlp.skips and mlp.out_dim <= 64 and not mlp.output_act_quirk)

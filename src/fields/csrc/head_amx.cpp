@@ -220,6 +220,24 @@ void vnni_rows(const uint16_t* src, int64_t ld, int nr, int rows, int C, uint16_
   }
 }
 
+// Rows r0 .. r0+nr of g [N, K] (float32, or bf16 rounded to nearest even) from the block gb [rows, Kp] float32.
+void store_x_rows(at::Tensor& g, int64_t r0, int nr, int K, int Kp, const float* gb) {
+  if (g.scalar_type() == at::kFloat) {
+    float* gp = g.data_ptr<float>();
+    for (int r = 0; r < nr; ++r) std::memcpy(gp + (r0 + r) * K, gb + r * Kp, sizeof(float) * K);
+    return;
+  }
+  uint16_t* gp = bf16_ptr_mut(g);
+  for (int r = 0; r < nr; ++r) {
+    for (int c = 0; c < K; c += 32) {
+      __m512bh v = _mm512_cvtne2ps_pbh(load16(gb + r * Kp + c + 16), load16(gb + r * Kp + c));
+      const int n = std::min(32, K - c);
+      const __mmask32 m = n >= 32 ? ~static_cast<__mmask32>(0) : (static_cast<__mmask32>(1) << n) - 1;
+      _mm512_mask_storeu_epi16(gp + (r0 + r) * K + c, m, reinterpret_cast<__m512i&>(v));
+    }
+  }
+}
+
 struct Shape {
   int64_t N;
   int K, Kp, W, L, O;
@@ -338,7 +356,7 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
 
 // Backward. g_y [N, O] float32; x, H (h_0..h_L) from the forward; a_out[s] [W/2, Kp, 2] the input weights packed
 // over their output; w_out_packs[l] [W/2, W, 2] the hidden weights packed over their output; reads_x as in the
-// forward; w_out [O, W] float32. Returns (g_x [N, K] float32, g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W],
+// forward; w_out [O, W] float32. Returns (g_x [N, K] in x's dtype, g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W],
 // g_w_out [O, W], g_b_out [O]), all float32.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> head_backward(
     const at::Tensor& g_y, const at::Tensor& x, std::vector<at::Tensor> H, std::vector<at::Tensor> a_out,
@@ -370,8 +388,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const float* gyp = g_y.data_ptr<float>();
   const float* wo = w_out.data_ptr<float>();
   const auto fopts = g_y.options().dtype(at::kFloat);
-  at::Tensor g_x = at::empty({N, K}, fopts);
-  float* gxp = g_x.data_ptr<float>();
+  at::Tensor g_x = at::empty({N, K}, x.options().memory_format(at::MemoryFormat::Contiguous));
   const int n_threads = std::max(1, at::get_num_threads());  // torch's thread count, as in the forward
   // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [O, W], g_b_out [O]
   const int64_t n_a = static_cast<int64_t>(S) * W * Kp, n_w = static_cast<int64_t>(L) * W * W;
@@ -468,7 +485,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         gemm(gpt, rows, hv, rows, W, gw_t + static_cast<int64_t>(l - 1) * W * W, W, W, true);  // g_W += gᵀ h
         gemm(gpb, W, wp[l - 1], W, W, g, W, rows, false);                                      // g_h = g W
       }
-      for (int r = 0; r < nr; ++r) std::memcpy(gxp + (r0 + r) * K, gx + r * Kp, sizeof(float) * K);
+      store_x_rows(g_x, r0, nr, K, Kp, gx);
     }
     _tile_release();
   }
