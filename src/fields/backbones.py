@@ -18,10 +18,10 @@ from abc import ABC, abstractmethod
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from src.fields.triplane import TriplaneGenerator, stacked_planes
+from src.fields.triplane_sample import sample_planes
 from src.utils.cpu import resolve_autocast_bf16
 
 
@@ -73,9 +73,9 @@ PLANE_AXES: tuple[tuple[int, int], ...] = ((0, 1), (1, 2), (2, 0))  # xy, yz, zx
 class CNNTriplaneBackbone(FieldBackbone):
     """Three CNN-generated axis-aligned feature planes + a 2-layer refinement MLP (B.2).
 
-    Each point is projected onto the xy, yz and zx planes, bilinearly sampled (``grid_sample``,
-    ``align_corners=False``, zero padding, points assumed in [-1, 1]^3 as the reference: no
-    normalisation), the three features are concatenated (3·C) and refined by
+    Each point is projected onto the xy, yz and zx planes, bilinearly sampled (``grid_sample`` or its
+    compiled form, ``src.fields.triplane_sample``; ``align_corners=False``, zero padding, points assumed
+    in [-1, 1]^3 as the reference: no normalisation), the three features are concatenated (3·C) and refined by
     Linear(3C, 3C) → ReLU → Linear(3C, 3C). feature_dim = 3·``plane_channels`` (B.2: 48).
 
     Args:
@@ -176,8 +176,6 @@ class CNNTriplaneBackbone(FieldBackbone):
     def sample(self, state: Tensor, points: Tensor) -> Tensor:
         """Refined tri-plane features [N, 3C] of ``points`` [N, 3] from planes ``state`` [3, C, R, R]."""
         planes = state.to(points.dtype)
-        # grid[p, 0, n] = (u, v): u indexes the plane's width, v its height.
-        grid = torch.stack([points[:, list(ax)] for ax in PLANE_AXES], dim=0)[:, None]  # [3, 1, N, 2]
-        feats = F.grid_sample(planes, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        feats = feats[:, :, 0].permute(2, 0, 1).reshape(points.shape[0], -1)  # [N, 3·C] (xy, yz, zx)
-        return self.refine(feats)
+        # uv[p, n] = (u, v): u indexes the plane's width, v its height.
+        uv = torch.stack([points[:, list(ax)] for ax in PLANE_AXES], dim=0)  # [3, N, 2]
+        return self.refine(sample_planes(planes, uv))  # [N, 3·C] (xy, yz, zx) before the refinement

@@ -56,6 +56,8 @@ PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
 PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 # 2D Gaussian surfel compositing (2DGS): its own shared object, built on first use by the surfel backend only
 SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
+# bilinear reads of the tri-planes (src/fields/triplane_sample.py): any CPU
+SAMPLER_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "triplane_sample.cpp"]
 # a field head's layers as one kernel on AMX-BF16 tiles (src/fields/head_kernel.py): built on AMX CPUs only
 HEAD_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_amx.cpp"]
 HEAD_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
@@ -65,8 +67,7 @@ OPS_NAMESPACE = "splatfields_cpu"
 
 _lock = threading.Lock()
 _module: Any = None
-_surfel_loaded = False
-_head_loaded = False
+_units_loaded: set[str] = set()
 
 
 def cpu_has_avx2_fma() -> bool:
@@ -180,6 +181,16 @@ def load_extension(verbose: bool = False) -> Any:
         return _module
 
 
+def _load_once(name: str, sources: list[Path], flags: list[str], verbose: bool, fallback: str) -> Any:
+    """Build (if needed) and load the unit ``name`` once per process; returns the ops namespace."""
+    if name not in _units_loaded:
+        with _lock:
+            if name not in _units_loaded:
+                _load_unit(name, sources, [], flags, verbose, fallback)
+                _units_loaded.add(name)
+    return getattr(torch.ops, OPS_NAMESPACE)
+
+
 def load_surfel_extension(verbose: bool = False) -> Any:
     """Compile (if needed) and load the surfel extension (``csrc/surfel_cpu.cpp``, 2DGS compositing).
 
@@ -192,13 +203,23 @@ def load_surfel_extension(verbose: bool = False) -> Any:
     Raises:
         RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
     """
-    global _surfel_loaded
-    if not _surfel_loaded:
-        with _lock:
-            if not _surfel_loaded:
-                _load_unit("surfel_cpu", SURFEL_SOURCES, [], projection_compile_flags(), verbose)
-                _surfel_loaded = True
-    return getattr(torch.ops, OPS_NAMESPACE)
+    return _load_once("surfel_cpu", SURFEL_SOURCES, projection_compile_flags(), verbose,
+                      "Use rasterizer=torch_ref as a slow fallback.")
+
+
+def load_sampler_extension(verbose: bool = False) -> Any:
+    """Compile (if needed) and load the tri-plane sampler (``src/fields/csrc/triplane_sample.cpp``).
+
+    Built with the fused projection's flags into ``triplane_sample_<hash>/`` of the same cache.
+
+    Returns:
+        The ``torch.ops.splatfields_cpu`` namespace (``triplane_sample_forward``, ``triplane_sample_backward``).
+
+    Raises:
+        RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
+    """
+    return _load_once("triplane_sample", SAMPLER_SOURCES, projection_compile_flags(), verbose,
+                      "The tri-planes are then read with grid_sample.")
 
 
 def load_head_extension(verbose: bool = False) -> Any:
@@ -214,11 +235,5 @@ def load_head_extension(verbose: bool = False) -> Any:
     Raises:
         RuntimeError: if the build fails (needs g++ >= 11 with OpenMP, and ``ninja``).
     """
-    global _head_loaded
-    if not _head_loaded:
-        with _lock:
-            if not _head_loaded:
-                _load_unit("head_amx", HEAD_SOURCES, [], HEAD_CFLAGS, verbose,
-                           "Set model.network.head_kernel=off to use the oneDNN layers.")
-                _head_loaded = True
-    return getattr(torch.ops, OPS_NAMESPACE)
+    return _load_once("head_amx", HEAD_SOURCES, HEAD_CFLAGS, verbose,
+                      "Set model.network.head_kernel=off to use the oneDNN layers.")
