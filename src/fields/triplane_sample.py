@@ -6,7 +6,7 @@ with bilinear weights, zero padding and ``align_corners=False``, laid out plane-
 heads read it. The kernel lays the planes out channels-last so that each corner of a read is C contiguous
 floats, and its backward adds into per-thread copies of the planes' gradient (grid_sample's CPU backward
 scatters one channel at a time). It runs where it applies (CPU, float32, points without gradient: the query
-points are buffers); elsewhere, and with ``fast=False``, the reference is ``grid_sample`` itself.
+points are buffers; eager mode); elsewhere, and with ``fast=False``, the reference is ``grid_sample`` itself.
 ``tests/test_triplane_sample.py`` checks that both agree, values and gradients.
 """
 
@@ -59,11 +59,13 @@ def sample_planes(planes: Tensor, uv: Tensor, fast: bool = True) -> Tensor:
         planes: the tri-planes, one [C, R, R] image per plane.
         uv: per plane, N points (u: width, v: height) in [-1, 1]; outside reads zero.
         fast: the compiled kernel where it applies (CPU, float32 planes and points, points without
-            gradient, extension built); False: ``grid_sample``.
+            gradient, extension built, not under ``torch.compile``, which traces ``grid_sample``);
+            False: ``grid_sample``.
     """
     n = uv.shape[1]
     if (fast and planes.device.type == "cpu" and planes.dtype == torch.float32 and uv.dtype == torch.float32
-            and not uv.requires_grad and planes.shape[-1] == planes.shape[-2] and sampler_ready()):
+            and not uv.requires_grad and planes.shape[-1] == planes.shape[-2] and not torch.compiler.is_compiling()
+            and sampler_ready()):
         return _Sample.apply(planes, uv)
     feats = F.grid_sample(planes, uv[:, None], mode="bilinear", padding_mode="zeros", align_corners=False)
     return feats[:, :, 0].permute(2, 0, 1).reshape(n, -1)  # [N, P·C]
