@@ -497,8 +497,11 @@ def main(argv: list[str] | None = None) -> int:
                          else peaks["float32"])
     print("peaks GFLOP/s: " + ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} conv {p['conv_gflops']:.0f}"
                                          for d, p in peaks.items()))
-    specs = [(m, n, [], None) for n in sizes for m in methods]  # (method, splats, overrides, variant) per row
-    rows = [_run_isolated(*spec[:2], args, *spec[2:]) for spec in specs]
+    def run(spec: tuple) -> dict:  # spec: (method, splats, overrides, variant) of one row
+        return _run_isolated(spec[0], spec[1], args, spec[2], spec[3])
+
+    specs = [(m, n, [], None) for n in sizes for m in methods]
+    rows = [run(spec) for spec in specs]
     configured = list(rows)
     for key, field, values in (("head_width", "field_budget.head_width", args.head_widths),
                                ("plane_blocks", "field_budget.triplane_up_blocks", args.plane_blocks)):
@@ -510,9 +513,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.head_kernel:
         specs += [(r["method"], r["n_splats"], [f"model.network.head_kernel={args.head_kernel}"],
                    {"head_kernel": args.head_kernel == "on"}) for r in configured if r.get("has_network")]
-    rows += [_run_isolated(*spec[:2], args, *spec[2:]) for spec in specs[len(rows):]]
+    rows += [run(spec) for spec in specs[len(rows):]]
     for _ in range(1, args.repeat):  # further rounds over all rows in the same order: drift hits every row alike
-        rows = [faster_row(r, _run_isolated(*spec[:2], args, *spec[2:])) for r, spec in zip(rows, specs, strict=True)]
+        rows = [faster_row(r, run(spec)) for r, spec in zip(rows, specs, strict=True)]
     for r in rows:
         base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
                     None)

@@ -50,21 +50,25 @@ class HeadInput:
         weights: ``head_weights(mlp, ...)``.
         pe_dim: width of the head's PE(x) block; pe_max: width of the group's shared PE block.
         feat_dim: width of the backbone feature f; time_dim: width of PE(t) (0 when static).
+
+    Attributes:
+        w_x: [S, F + pe_max] the blocks' weights on the group's ``input_row`` ``[f, PE_Lmax(x)]``.
+        w_t: [S, T] their weights on PE(t); b: [S] their biases; sizes: the blocks' widths (sum S).
     """
 
     def __init__(self, mlp: FieldMLP, weights: list[Tensor], pe_dim: int, pe_max: int, feat_dim: int,
                  time_dim: int) -> None:
         self.mlp = mlp
         self.rows = [0, *mlp.skips]  # linears that read h_in
-        w_pe, w_f, w_t, b = [], [], [], []
+        w_x, w_t, b = [], [], []
         for i in self.rows:
             w_in = weights[i][:, : mlp.in_dim]  # [out, in_dim]: the input part (reference order: input first)
-            w_pe.append(F.pad(w_in[:, :pe_dim], (0, pe_max - pe_dim)))  # [out, pe_max]
-            w_f.append(w_in[:, pe_dim: pe_dim + feat_dim])  # [out, F]
+            w_pe = F.pad(w_in[:, :pe_dim], (0, pe_max - pe_dim))  # [out, pe_max]
+            w_x.append(torch.cat([w_in[:, pe_dim: pe_dim + feat_dim], w_pe], dim=1))  # [out, F + pe_max]
             w_t.append(w_in[:, pe_dim + feat_dim: pe_dim + feat_dim + time_dim])  # [out, T]
             b.append(mlp.layers[i].bias)  # the skip linear's bias travels with its input part
-        self.sizes = [int(w.shape[0]) for w in w_pe]
-        self.w_pe, self.w_f, self.w_t, self.b = (torch.cat(w_pe), torch.cat(w_f), torch.cat(w_t), torch.cat(b))
+        self.sizes = [int(w.shape[0]) for w in w_x]
+        self.w_x, self.w_t, self.b = torch.cat(w_x), torch.cat(w_t), torch.cat(b)
 
 
 def input_row(feat: Tensor, pe: Tensor) -> Tensor:
@@ -93,7 +97,7 @@ def input_layer(heads: Sequence[HeadInput], x: Tensor, t_enc: Tensor | None) -> 
     Returns:
         per head, its blocks (each [N, W], views of one [N, S] product).
     """
-    w = torch.cat([torch.cat([h.w_f, h.w_pe], dim=1) for h in heads])  # [S, F + pe_max]
+    w = torch.cat([h.w_x for h in heads])  # [S, F + pe_max]
     out = torch.addmm(_input_bias(heads, t_enc), x, w.t())  # [N, S]
     blocks = out.split([s for h in heads for s in h.sizes], dim=1)
     res, k = [], 0
@@ -121,7 +125,7 @@ def kernel_head(head: HeadInput, weights: list[Tensor], x: Tensor, t_enc: Tensor
         x: [N, F + pe_max] ``input_row``; t_enc: [1, T] PE(t) row or None.
     """
     mlp = head.mlp
-    a = torch.cat([head.w_f, head.w_pe], dim=1).split(head.sizes)  # [W, K] per input-reading linear
+    a = head.w_x.split(head.sizes)  # [W, K] per input-reading linear
     b_in = _input_bias([head], t_enc).split(head.sizes)
     hidden, bias, reads, k = [], [b_in[0]], [0], 1
     for i in range(1, mlp.n_layers - 1):

@@ -118,9 +118,10 @@ class _Head(torch.autograd.Function):
         w_out, b_out = params[-2], params[-1]
         bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
         w_out32 = w_out.detach().float().contiguous()  # [O, W]
-        y, H = _ops().head_forward(x.detach(), [pack_in(_padded(w)) for w in a], [pack_in(w) for w in hidden],
+        a_pad = [_padded(w) for w in a]  # [W, Kp]
+        y, H = _ops().head_forward(x.detach(), [pack_in(w) for w in a_pad], [pack_in(w) for w in hidden],
                                    bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
-        ctx.save_for_backward(x, w_out32, *H, *a, *hidden)
+        ctx.save_for_backward(x, w_out32, *H, *a_pad, *hidden)
         ctx.meta = (meta, [p.dtype for p in params])
         return y
 
@@ -128,9 +129,9 @@ class _Head(torch.autograd.Function):
     def backward(ctx, g_y: Tensor):
         (n_a, n_h, reads_x, rows), dtypes = ctx.meta
         x, w_out32, *rest = ctx.saved_tensors
-        H, a, hidden = rest[: n_h + 1], rest[n_h + 1: n_h + 1 + n_a], rest[n_h + 1 + n_a:]
+        H, a_pad, hidden = rest[: n_h + 1], rest[n_h + 1: n_h + 1 + n_a], rest[n_h + 1 + n_a:]
         g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
-            g_y.float().contiguous(), x, H, [pack_out(_padded(w)) for w in a], [pack_out(w) for w in hidden],
+            g_y.float().contiguous(), x, H, [pack_out(w) for w in a_pad], [pack_out(w) for w in hidden],
             list(reads_x), w_out32, rows[1])
         k = x.shape[1]
         grads = [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
