@@ -1,8 +1,8 @@
 """Exact rewrites of the tri-plane CNN against the per-plane reference path, in float64.
 
 * ``subpixel_upsample_conv``: nearest ×2 + 3×3 conv as one 2×2 conv at the low resolution;
-* ``stacked_planes``: the three generators as one grouped-conv network (optionally channels-last,
-  GroupNorm with one channel per group as batch-statistics ``batch_norm``);
+* ``stack_generators``: the three generators as one grouped-conv network with stacked parameters
+  (optionally channels-last, GroupNorm with one channel per group as batch-statistics ``batch_norm``);
 * ``CNNTriplaneBackbone(stack_planes=..., stack_channels_last=..., subpixel_upsample=...)``: same
   state dict, same planes, same gradient for every parameter.
 """
@@ -18,7 +18,14 @@ import torch.nn.functional as F
 from omegaconf import OmegaConf
 
 from src.fields.backbones import CNNTriplaneBackbone
-from src.fields.triplane import TriplaneGenerator, stacked_planes, subpixel_kernels, subpixel_upsample_conv
+from src.fields.triplane import (
+    TriplaneGenerator,
+    split_plane_state,
+    stack_generators,
+    stack_plane_state,
+    subpixel_kernels,
+    subpixel_upsample_conv,
+)
 from tests.test_fields import assert_compiled_matches_eager
 
 TOL = dict(rtol=1e-10, atol=1e-10)
@@ -74,22 +81,44 @@ GEN = dict(noise_channels=3, noise_res=5, channels=8, out_channels=6, n_up_block
 @pytest.mark.parametrize("norm_groups", [8, 4])  # one channel per group (the configured 32/32), and two
 @pytest.mark.parametrize("extra_mid", [False, True])
 @pytest.mark.parametrize("subpixel,channels_last", [(False, False), (False, True), (True, False), (True, True)])
-def test_stacked_planes_match_per_plane_generators(norm_groups, extra_mid, subpixel, channels_last):
-    gens = [TriplaneGenerator(**GEN, norm_groups=norm_groups, ref_extra_mid_resnet=extra_mid, seed=p).double()
-            for p in range(3)]
+def test_stacked_generator_matches_per_plane_generators(norm_groups, extra_mid, subpixel, channels_last):
+    gens = [TriplaneGenerator(**GEN, norm_groups=norm_groups, ref_extra_mid_resnet=extra_mid, seed=p,
+                              subpixel_upsample=subpixel).double() for p in range(3)]
     for p, gen in enumerate(gens):
         _randomise(gen, seed=p)
+    stacked = stack_generators(gens, channels_last=channels_last)
+    assert stacked.planes == 3 and stacked.noise.dtype == torch.float64
     ref = torch.cat([gen() for gen in gens])
-    got = stacked_planes(gens, subpixel=subpixel, channels_last=channels_last)
+    got = stacked()
     assert got.shape == ref.shape == (3, 6, 20, 20) and got.is_contiguous()
     torch.testing.assert_close(got, ref, **TOL)
     weight = torch.randn(ref.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
-    params = [p for gen in gens for p in gen.parameters()]
-    g_ref = torch.autograd.grad((ref * weight).sum(), params)
-    g_got = torch.autograd.grad((got * weight).sum(), params)
-    names = [f"{i}.{n}" for i, gen in enumerate(gens) for n, _ in gen.named_parameters()]
-    for a, b, name in zip(g_ref, g_got, names, strict=True):
-        torch.testing.assert_close(b, a, **TOL, msg=name)
+    g_ref = [torch.autograd.grad((ref * weight).sum(), list(gen.parameters()), retain_graph=True) for gen in gens]
+    g_got = torch.autograd.grad((got * weight).sum(), list(stacked.parameters()))
+    names = [n for n, _ in stacked.named_parameters()]
+    assert names == [n for n, _ in gens[0].named_parameters()]
+    for i, (b, name) in enumerate(zip(g_got, names, strict=True)):  # plane p's gradient is chunk p of the stacked one
+        torch.testing.assert_close(b, torch.cat([g[i] for g in g_ref]), **TOL, msg=name)
+
+
+def test_plane_state_round_trip_and_errors():
+    gens = [TriplaneGenerator(**GEN, norm_groups=4, seed=p) for p in range(3)]
+    states = [g.state_dict() for g in gens]
+    stacked = stack_plane_state(states)
+    assert stacked["noise"].shape == (3, 3, 5, 5) and stacked["conv_in.weight"].shape == (24, 3, 3, 3)
+    for a, b in zip(split_plane_state(stacked, 3), states, strict=True):
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="not a multiple of 2 planes"):
+        split_plane_state(stacked, 2)
+    with pytest.raises(ValueError, match="different keys"):
+        stack_plane_state([states[0], TriplaneGenerator(**GEN, norm_groups=4, ref_extra_mid_resnet=True).state_dict()])
+    with pytest.raises(ValueError, match="one configuration"):
+        stack_generators([gens[0], TriplaneGenerator(**{**GEN, "channels": 4}, norm_groups=4)])
+    torch.manual_seed(7)
+    expect = torch.rand(3)
+    torch.manual_seed(7)
+    stack_generators(gens)
+    assert torch.equal(torch.rand(3), expect)  # stacking leaves the global RNG (later inits) as it was
 
 
 BACKBONE = dict(plane_channels=6, noise_channels=3, noise_res=5, channels=8, n_up_blocks=3, resnets_per_block=2,
@@ -103,16 +132,25 @@ def test_backbone_switches_keep_state_dict_planes_and_gradients(variant):
     ref = CNNTriplaneBackbone(**BACKBONE).double()
     fast = CNNTriplaneBackbone(**BACKBONE, **variant).double()
     _randomise(ref)
-    assert fast.state_dict().keys() == ref.state_dict().keys()
+    assert fast.state_dict().keys() == ref.state_dict().keys()  # the per-plane layout either way
     fast.load_state_dict(ref.state_dict())
+    back = CNNTriplaneBackbone(**BACKBONE).double()
+    back.load_state_dict(fast.state_dict())  # and back: the stacked parameters split per plane
+    assert all(torch.equal(back.state_dict()[k], v) for k, v in ref.state_dict().items())
     planes_ref, planes_fast = ref.prepare(), fast.prepare()
     torch.testing.assert_close(planes_fast, planes_ref, **TOL)
     pts = torch.rand(50, 3, generator=torch.Generator().manual_seed(2), dtype=torch.float64) * 2 - 1
     ref(pts).square().sum().backward()
     fast(pts).square().sum().backward()
-    for (name, pa), pb in zip(ref.named_parameters(), fast.parameters(), strict=True):
-        assert pa.grad is not None and pb.grad is not None, name
-        torch.testing.assert_close(pb.grad, pa.grad, **TOL, msg=name)
+    grads = {n: p.grad for n, p in ref.named_parameters()}
+    for name, pb in fast.named_parameters():
+        assert pb.grad is not None, name
+        if name.startswith("generators.") and fast.stack_planes:  # plane p's gradient is chunk p of the stacked one
+            key = name.split(".", 2)[2]
+            expect = torch.cat([grads[f"generators.{p}.{key}"] for p in range(3)])
+        else:
+            expect = grads[name]
+        torch.testing.assert_close(pb.grad, expect, **TOL, msg=name)
 
 
 def test_stacked_bf16_autocast_close_to_reference():

@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from src.fields.triplane import TriplaneGenerator, stacked_planes
+from src.fields.triplane import TriplaneGenerator, split_plane_state, stack_generators, stack_plane_state
 from src.fields.triplane_sample import sample_planes
 from src.utils.cpu import resolve_autocast_bf16
 
@@ -92,9 +92,11 @@ class CNNTriplaneBackbone(FieldBackbone):
             come back in bfloat16 and ``sample`` reads them in the points' dtype): ``True``, ``False``
             or ``"auto"`` (on where the CPU multiplies bfloat16 natively AND a timed convolution shows
             it faster than float32, ``src.utils.cpu``, and the weights are float32 on the CPU).
-        stack_planes: run the three generators as one network (grouped convolutions over the planes'
-            stacked channels, ``src.fields.triplane.stacked_planes``): the same function and
-            parameters as the per-plane generators (the reference path, ``False``).
+        stack_planes: run the three generators as one network with their parameters stored stacked
+            (grouped convolutions over the planes' stacked channels, ``TriplaneGenerator(planes=3)``,
+            built by ``src.fields.triplane.stack_generators`` from the per-plane ones): the same
+            function as the per-plane generators (the reference path, ``False``). The state dict keeps
+            the per-plane layout either way (``generators.{p}.*``), so checkpoints load across the switch.
         stack_channels_last: with ``stack_planes``, keep the activations channels-last (oneDNN's
             convolutions then skip re-ordering their outputs; one-channel-per-group GroupNorms run as
             batch-statistics ``batch_norm``, the same normalisation). Ignored unless every GroupNorm has
@@ -129,7 +131,7 @@ class CNNTriplaneBackbone(FieldBackbone):
         self.stack_planes = bool(stack_planes)
         self.stack_channels_last = bool(stack_channels_last)
         self._compiled: list | None = None  # the compiled ``_planes`` (a plain list: not a submodule)
-        self.generators = nn.ModuleList(
+        per_plane = [
             TriplaneGenerator(
                 noise_channels=noise_channels,
                 noise_res=noise_res,
@@ -143,7 +145,13 @@ class CNNTriplaneBackbone(FieldBackbone):
                 subpixel_upsample=subpixel_upsample,
             )
             for p in range(3)
-        )
+        ]
+        # one stacked generator, or the three per-plane ones (the reference)
+        self.generators = nn.ModuleList(
+            [stack_generators(per_plane, channels_last=self.stack_channels_last)] if self.stack_planes else per_plane)
+        if self.stack_planes:  # the state dict in the per-plane layout both ways
+            self.register_state_dict_post_hook(_split_stacked_state)
+            self.register_load_state_dict_pre_hook(_stack_plane_state)
         f = 3 * plane_channels
         self.refine = (
             nn.Sequential(nn.Linear(f, f), nn.ReLU(), nn.Linear(f, f)) if refine else nn.Identity()
@@ -170,7 +178,7 @@ class CNNTriplaneBackbone(FieldBackbone):
     def _planes(self) -> Tensor:
         """The planes [3, C, R, R] by the configured path (stacked, or one generator per plane)."""
         if self.stack_planes:
-            return stacked_planes(self.generators, channels_last=self.stack_channels_last)
+            return self.generators[0]()
         return torch.cat([g() for g in self.generators], dim=0)
 
     def sample(self, state: Tensor, points: Tensor) -> Tensor:
@@ -179,3 +187,20 @@ class CNNTriplaneBackbone(FieldBackbone):
         # uv[p, n] = (u, v): u indexes the plane's width, v its height.
         uv = torch.stack([points[:, list(ax)] for ax in PLANE_AXES], dim=0)  # [3, N, 2]
         return self.refine(sample_planes(planes, uv))  # [N, 3·C] (xy, yz, zx) before the refinement
+
+
+def _split_stacked_state(module: CNNTriplaneBackbone, state: dict[str, Tensor], prefix: str, _meta: Any) -> None:
+    """State-dict hook: the stacked generator's entries ``generators.0.*`` [3·…] -> ``generators.{p}.*``."""
+    head = prefix + "generators.0."
+    stacked = {k[len(head):]: state.pop(k) for k in [k for k in state if k.startswith(head)]}
+    for p, plane in enumerate(split_plane_state(stacked, 3)):
+        state.update({f"{prefix}generators.{p}.{k}": v for k, v in plane.items()})
+
+
+def _stack_plane_state(module: CNNTriplaneBackbone, state: dict[str, Tensor], prefix: str, *_: Any) -> None:
+    """Load pre-hook: per-plane entries ``generators.{p}.*`` -> the stacked generator's ``generators.0.*``."""
+    heads = [f"{prefix}generators.{p}." for p in range(3)]
+    if not any(k.startswith(heads[1]) for k in state):
+        return  # already stacked (or absent: strict loading reports it)
+    planes = [{k[len(h):]: state.pop(k) for k in [k for k in state if k.startswith(h)]} for h in heads]
+    state.update({heads[0] + k: v for k, v in stack_plane_state(planes).items()})

@@ -1,4 +1,4 @@
-"""CNN tri-plane generator of SplatFields (supplementary B.2): fixed noise -> one feature plane.
+"""CNN tri-plane generator of SplatFields (supplementary B.2): fixed noise -> feature planes.
 
 Plain-torch re-implementation of the reference ``VarTriPlaneEncoder`` / ``TimeVAEDecoder`` (a
 diffusers-style VAE decoder); no mmcv / mmgen / diffusers.
@@ -11,87 +11,118 @@ Parameter count per plane (measured, ``tests/test_fields.py``): 206 672 with the
 (attention + 1 ResNet block), 225 296 with ``ref_extra_mid_resnet=True`` (the reference's
 ResNet→Attn→ResNet mid block; matches the hand count 225 296 of the reference notes §1.5).
 
-Two exact rewrites of the same function (same parameters, same state dict; checked in float64
-against the per-plane path by ``tests/test_triplane_fast.py``):
+Every module takes ``planes`` (P): P independent generators run as ONE network on [1, P·C, H, W]
+(plane-major channels) with their parameters stored stacked along dim 0: a conv's weight is
+[P·O, I, k, k] (a grouped conv, ``groups=P``), a norm's [P·C] (GroupNorm groups are contiguous channel
+blocks, so P·G groups over P·C channels are exactly each plane's G groups over its C channels), the
+attention projections [P·C, C] (batched matmuls over the planes), the noise [P, C_noise, r, r]. Plane
+p's parameter is chunk p of each stacked one (``stack_generators`` / ``split_plane_state``), so P = 1
+is the per-plane reference and P = 3 the same function (``tests/test_triplane_fast.py``, float64).
 
-* ``stacked_planes``: the P generators of a tri-plane run as one network on [1, P·C, H, W]
-  (plane-major channels): grouped convolutions (``groups=P``) with the per-plane kernels
-  concatenated, one GroupNorm with P·G groups (GroupNorm groups are contiguous channel blocks, so the
-  P·G groups over P·C channels are exactly the P planes' G groups over C channels, whatever C/G is),
-  attention as batched matmuls over the planes. The stacked weights are concatenated from the
-  per-plane parameters on every call, so autograd reaches the per-plane parameters.
-* sub-pixel up-sampling (``subpixel_upsample``): nearest ×2 followed by a 3×3 conv equals one
-  2×2 conv with 4·C outputs (one kernel per output phase, each a sum of taps of the 3×3 kernel) on
-  the low-resolution input, interleaved into the ×2 grid: 16 instead of 36 multiply-adds per output
-  pixel and channel pair, and no up-sampled copy of the input.
+With channels-last activations (``TriplaneGenerator.channels_last``) oneDNN's convolutions skip
+re-ordering their outputs, and GroupNorms with one channel per group run as ``batch_norm`` with batch
+statistics over the single image (the same per-channel normalisation, a fast channels-last kernel).
+
+Sub-pixel up-sampling (``subpixel_upsample_conv``): nearest ×2 followed by a 3×3 conv equals one 2×2
+conv with 4·C outputs (one kernel per output phase, each a sum of taps of the 3×3 kernel) on the
+low-resolution input, interleaved into the ×2 grid: 16 instead of 36 multiply-adds per output pixel and
+channel pair, and no up-sampled copy of the input.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 
-def _gn(channels: int, groups: int) -> nn.GroupNorm:
-    return nn.GroupNorm(groups, channels, eps=1e-6)  # diffusers default eps
+def _gn(channels: int, groups: int, planes: int = 1) -> nn.GroupNorm:
+    """GroupNorm of ``planes`` stacked planes of ``channels`` channels in ``groups`` groups each."""
+    return nn.GroupNorm(planes * groups, planes * channels, eps=1e-6)  # diffusers default eps
+
+
+def _normalise(norm: nn.GroupNorm, x: Tensor) -> Tensor:
+    """``norm(x)``; on channels-last x [1, C, H, W] with one channel per group, as batch-statistics
+    ``batch_norm`` (biased variance, same eps: the same per-channel normalisation, a faster kernel)."""
+    if (norm.num_groups == norm.num_channels and x.shape[0] == 1 and x.dim() == 4
+            and not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last)):
+        return F.batch_norm(x, None, None, norm.weight, norm.bias, True, 0.0, norm.eps)
+    return norm(x)
 
 
 class ResnetBlock2D(nn.Module):
     """x + conv(SiLU(GN(conv(SiLU(GN(x)))))): two 3×3 convs, identity skip (in = out channels).
 
     The second conv is zero-initialised so the block starts as the identity (reference
-    ``zero_init_residual``).
+    ``zero_init_residual``). ``planes`` stacked blocks run as grouped convs on [B, P·C, H, W].
     """
 
-    def __init__(self, channels: int, norm_groups: int = 32) -> None:
+    def __init__(self, channels: int, norm_groups: int = 32, planes: int = 1) -> None:
         super().__init__()
-        self.norm1 = _gn(channels, norm_groups)
-        self.conv1 = nn.Conv2d(channels, channels, 3, padding=1)
-        self.norm2 = _gn(channels, norm_groups)
-        self.conv2 = nn.Conv2d(channels, channels, 3, padding=1)
+        width = planes * channels
+        self.norm1 = _gn(channels, norm_groups, planes)
+        self.conv1 = nn.Conv2d(width, width, 3, padding=1, groups=planes)
+        self.norm2 = _gn(channels, norm_groups, planes)
+        self.conv2 = nn.Conv2d(width, width, 3, padding=1, groups=planes)
         nn.init.zeros_(self.conv2.weight)
         nn.init.zeros_(self.conv2.bias)
 
     def forward(self, x: Tensor) -> Tensor:
-        """x [B, C, H, W] -> [B, C, H, W]."""
-        h = self.conv1(F.silu(self.norm1(x)))
-        h = self.conv2(F.silu(self.norm2(h)))  # dropout(0) of the reference omitted
+        """x [B, P·C, H, W] -> [B, P·C, H, W]."""
+        h = self.conv1(F.silu(_normalise(self.norm1, x)))
+        h = self.conv2(F.silu(_normalise(self.norm2, h)))  # dropout(0) of the reference omitted
         return x + h
 
 
 class SelfAttention2D(nn.Module):
-    """Single-head spatial self-attention with a residual: x + proj(softmax(q kᵀ/√C) v).
+    """Single-head spatial self-attention with a residual: x + proj(softmax(q kᵀ/√C) v), per plane.
 
     GroupNorm before the q/k/v projections (linear over channels, one token per pixel); the output
-    projection is zero-initialised, so the layer starts as the identity.
+    projection is zero-initialised, so the layer starts as the identity. With ``planes`` P the
+    projections hold the planes' weights stacked: ``to_q.weight`` [P·C, C] is plane p's [C, C] at rows
+    p·C .. (p+1)·C (nn.Linear as the parameter holder; applied per plane as batched matmuls).
     """
 
-    def __init__(self, channels: int, norm_groups: int = 32) -> None:
+    def __init__(self, channels: int, norm_groups: int = 32, planes: int = 1) -> None:
         super().__init__()
-        self.norm = _gn(channels, norm_groups)
-        self.to_q = nn.Linear(channels, channels)
-        self.to_k = nn.Linear(channels, channels)
-        self.to_v = nn.Linear(channels, channels)
-        self.proj_out = nn.Linear(channels, channels)
+        self.planes = planes
+        self.norm = _gn(channels, norm_groups, planes)
+        self.to_q = nn.Linear(channels, planes * channels)
+        self.to_k = nn.Linear(channels, planes * channels)
+        self.to_v = nn.Linear(channels, planes * channels)
+        self.proj_out = nn.Linear(channels, planes * channels)
         nn.init.zeros_(self.proj_out.weight)
         nn.init.zeros_(self.proj_out.bias)
 
+    def _stacked(self, *layers: nn.Linear) -> tuple[Tensor, Tensor]:
+        """The layers' weights as [P, C_in, n·C] (transposed for ``x @ w``) and biases [P, 1, n·C]."""
+        P = self.planes
+        ws = [m.weight.view(P, -1, m.in_features) for m in layers]  # [P, C, C] each
+        bs = [m.bias.view(P, 1, -1) for m in layers]  # [P, 1, C] each
+        w, b = (ws[0], bs[0]) if len(layers) == 1 else (torch.cat(ws, dim=1), torch.cat(bs, dim=2))
+        return w.transpose(1, 2), b
+
     def forward(self, x: Tensor) -> Tensor:
-        """x [B, C, H, W] -> [B, C, H, W]."""
-        B, C, H, W = x.shape
-        tokens = self.norm(x).flatten(2).transpose(1, 2)  # [B, HW, C]
-        q, k, v = self.to_q(tokens), self.to_k(tokens), self.to_v(tokens)
-        scores = (q @ k.transpose(1, 2)) / math.sqrt(C)  # [B, HW, HW]
+        """x [B, P·C, H, W] -> [B, P·C, H, W]."""
+        B, PC, H, W = x.shape
+        P = self.planes
+        C = PC // P
+        tokens = _normalise(self.norm, x).reshape(B, P, C, H * W).transpose(2, 3)  # [B, P, HW, C]
+        w_qkv, b_qkv = self._stacked(self.to_q, self.to_k, self.to_v)
+        q, k, v = (tokens @ w_qkv + b_qkv).split(C, dim=-1)  # [B, P, HW, C] each
+        scores = (q @ k.transpose(-1, -2)) / math.sqrt(C)  # [B, P, HW, HW]
         # softmax in >= float32 (the reference upcasts half precision), result in the input dtype
         soft_dtype = torch.float32 if scores.dtype in (torch.float16, torch.bfloat16) else scores.dtype
         attn = torch.softmax(scores, dim=-1, dtype=soft_dtype).to(q.dtype)
-        out = self.proj_out(attn @ v)  # [B, HW, C]
-        return x + out.transpose(1, 2).reshape(B, C, H, W)
+        w_out, b_out = self._stacked(self.proj_out)
+        out = (attn @ v) @ w_out + b_out  # [B, P, HW, C]
+        out = out.reshape(B, P, H * W, C).transpose(2, 3).reshape(B, PC, H, W)
+        if not x.is_contiguous() and x.is_contiguous(memory_format=torch.channels_last):
+            out = out.contiguous(memory_format=torch.channels_last)
+        return x + out
 
 
 def subpixel_kernels(weight: Tensor) -> Tensor:
@@ -175,26 +206,29 @@ class _Interleave(torch.autograd.Function):
 
 
 class Upsample2D(nn.Module):
-    """Nearest-neighbour ×2 up-sampling followed by a 3×3 conv.
+    """Nearest-neighbour ×2 up-sampling followed by a 3×3 conv (``planes`` stacked: a grouped conv).
 
     With ``subpixel=True`` the same function runs as one 2×2 conv at the input resolution
     (``subpixel_upsample_conv``); the parameter is the 3×3 conv either way.
     """
 
-    def __init__(self, channels: int, subpixel: bool = False) -> None:
+    def __init__(self, channels: int, subpixel: bool = False, planes: int = 1) -> None:
         super().__init__()
-        self.conv = nn.Conv2d(channels, channels, 3, padding=1)
+        self.planes = planes
+        self.conv = nn.Conv2d(planes * channels, planes * channels, 3, padding=1, groups=planes)
         self.subpixel = subpixel
 
     def forward(self, x: Tensor) -> Tensor:
-        """x [B, C, H, W] -> [B, C, 2H, 2W]."""
+        """x [B, P·C, H, W] -> [B, P·C, 2H, 2W]."""
         if self.subpixel:
-            return subpixel_upsample_conv(x, self.conv.weight[None], self.conv.bias[None])
+            P = self.planes
+            w = self.conv.weight.view(P, -1, *self.conv.weight.shape[1:])  # [P, C, C, 3, 3]
+            return subpixel_upsample_conv(x, w, self.conv.bias.view(P, -1), groups=P)
         return self.conv(F.interpolate(x, scale_factor=2.0, mode="nearest"))
 
 
 class TriplaneGenerator(nn.Module):
-    """CNN decoder from a fixed noise image to one feature plane [1, out_channels, R, R].
+    """CNN decoder from a fixed noise image to ``planes`` feature planes [P, out_channels, R, R].
 
     Args:
         noise_channels: channels of the fixed noise input (B.2: 8).
@@ -211,6 +245,9 @@ class TriplaneGenerator(nn.Module):
             reference does not seed it).
         subpixel_upsample: run each nearest ×2 + 3×3 conv as a 2×2 conv at the low resolution
             (``subpixel_upsample_conv``; same function and parameters). Default False (reference).
+        planes: P independent generators as one network, parameters stacked along dim 0 (module
+            docstring); 1 is the per-plane reference.
+        channels_last: run the activations channels-last (module docstring); the same function.
     """
 
     def __init__(
@@ -225,39 +262,52 @@ class TriplaneGenerator(nn.Module):
         ref_extra_mid_resnet: bool = False,
         seed: int = 0,
         subpixel_upsample: bool = False,
+        planes: int = 1,
+        channels_last: bool = False,
     ) -> None:
         super().__init__()
+        self.config = dict(noise_channels=noise_channels, noise_res=noise_res, channels=channels,
+                           out_channels=out_channels, n_up_blocks=n_up_blocks, resnets_per_block=resnets_per_block,
+                           norm_groups=norm_groups, ref_extra_mid_resnet=ref_extra_mid_resnet,
+                           subpixel_upsample=subpixel_upsample)  # the per-plane configuration (seed aside)
         if n_up_blocks < 1:
             raise ValueError("n_up_blocks must be >= 1")
+        if planes < 1:
+            raise ValueError(f"planes must be >= 1, got {planes}")
+        self.planes = planes
+        self.channels_last = channels_last
         self.out_channels = out_channels
         self.resolution = noise_res * 2 ** (n_up_blocks - 1)
         g = torch.Generator().manual_seed(int(seed))
-        # Fixed (never optimised) noise input, saved in the state dict: [1, C_noise, r, r].
-        self.register_buffer("noise", torch.randn(1, noise_channels, noise_res, noise_res, generator=g))
+        # Fixed (never optimised) noise input, saved in the state dict: [P, C_noise, r, r].
+        self.register_buffer("noise", torch.randn(planes, noise_channels, noise_res, noise_res, generator=g))
 
-        self.conv_in = nn.Conv2d(noise_channels, channels, 3, padding=1)
+        P = planes
+        self.conv_in = nn.Conv2d(P * noise_channels, P * channels, 3, padding=1, groups=P)
         mid: list[nn.Module] = []
         if ref_extra_mid_resnet:
-            mid.append(ResnetBlock2D(channels, norm_groups))
-        mid += [SelfAttention2D(channels, norm_groups), ResnetBlock2D(channels, norm_groups)]
+            mid.append(ResnetBlock2D(channels, norm_groups, P))
+        mid += [SelfAttention2D(channels, norm_groups, P), ResnetBlock2D(channels, norm_groups, P)]
         self.mid = nn.Sequential(*mid)
         blocks: list[nn.Module] = []
         for b in range(n_up_blocks):
-            layers: list[nn.Module] = [ResnetBlock2D(channels, norm_groups) for _ in range(resnets_per_block)]
+            layers: list[nn.Module] = [ResnetBlock2D(channels, norm_groups, P) for _ in range(resnets_per_block)]
             if b < n_up_blocks - 1:
-                layers.append(Upsample2D(channels, subpixel_upsample))
+                layers.append(Upsample2D(channels, subpixel_upsample, P))
             blocks.append(nn.Sequential(*layers))
         self.up_blocks = nn.ModuleList(blocks)
-        self.norm_out = _gn(channels, norm_groups)
-        self.conv_out = nn.Conv2d(channels, out_channels, 3, padding=1)
+        self.norm_out = _gn(channels, norm_groups, P)
+        self.conv_out = nn.Conv2d(P * channels, P * out_channels, 3, padding=1, groups=P)
         self._init_weights()
 
     def _init_weights(self) -> None:
-        # mmcv kaiming_init defaults on every conv: normal, fan_out, relu gain, bias 0;
-        # then the zero-init of residual branches (second conv of each ResNet block).
+        # mmcv kaiming_init defaults on every conv: normal, fan_out, relu gain, bias 0 (per plane: each
+        # plane's kernel has the fan of a one-plane conv); then the zero-init of residual branches
+        # (second conv of each ResNet block).
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
-                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+                for w in m.weight.detach().chunk(self.planes):
+                    nn.init.kaiming_normal_(w, mode="fan_out", nonlinearity="relu")
                 nn.init.zeros_(m.bias)
         for m in self.modules():
             if isinstance(m, ResnetBlock2D):
@@ -265,136 +315,49 @@ class TriplaneGenerator(nn.Module):
                 nn.init.zeros_(m.conv2.bias)
 
     def forward(self) -> Tensor:
-        """The feature plane [1, out_channels, R, R] (R = ``self.resolution``)."""
-        h = self.conv_in(self.noise)  # [1, C, r, r]
+        """The feature planes [P, out_channels, R, R] (contiguous; R = ``self.resolution``)."""
+        P, _, r, _ = self.noise.shape
+        h = self.noise.view(1, -1, r, r)  # [1, P·C_noise, r, r]
+        if self.channels_last:
+            h = h.contiguous(memory_format=torch.channels_last)
+        h = self.conv_in(h)  # [1, P·C, r, r]
         h = self.mid(h)
         for block in self.up_blocks:
-            h = block(h)  # [1, C, ...] doubling resolution in all blocks but the last
-        return self.conv_out(F.silu(self.norm_out(h)))
+            h = block(h)  # [1, P·C, ...] doubling resolution in all blocks but the last
+        h = self.conv_out(F.silu(_normalise(self.norm_out, h)))  # [1, P·O, R, R]
+        return h.contiguous().view(P, self.out_channels, h.shape[2], h.shape[3])
 
 
-# --------------------------------------------------------------------------------------------------
-# All planes as one network (grouped convolutions over plane-major channels)
-# --------------------------------------------------------------------------------------------------
+def stack_generators(generators: Sequence[TriplaneGenerator], channels_last: bool = False) -> TriplaneGenerator:
+    """One generator with ``planes = len(generators)`` computing ``torch.cat([g() for g in generators])``.
 
-
-
-@dataclass(frozen=True)
-class StackOptions:
-    """How ``stacked_planes`` lays the stacked network out (each option keeps the function exact).
-
-    Attributes:
-        subpixel: sub-pixel form of the up-samplers (``subpixel_upsample_conv``).
-        channels_last: keep the activations in channels-last memory format, where oneDNN runs its
-            convolutions without re-ordering their outputs; GroupNorms with one channel per group
-            then run as ``batch_norm`` with batch statistics (over the single image, per channel:
-            the same normalisation, and a fast channels-last kernel where GroupNorm's is slow).
-            Ignored unless every GroupNorm has one channel per group.
-    """
-
-    subpixel: bool = False
-    channels_last: bool = False
-
-
-def _conv(convs: Sequence[nn.Conv2d], x: Tensor) -> Tensor:
-    """The P per-plane ``convs`` as one grouped conv: x [1, P·I, H, W] -> [1, P·O, H, W]."""
-    w = torch.cat([m.weight for m in convs])  # [P·O, I, k, k]
-    b = torch.cat([m.bias for m in convs])
-    return F.conv2d(x, w, b, padding=convs[0].padding, groups=len(convs))
-
-
-def _norm(norms: Sequence[nn.GroupNorm], x: Tensor, opt: StackOptions) -> Tensor:
-    """The P per-plane GroupNorms as one: x [1, P·C, H, W] -> [1, P·C, H, W] (P·G groups).
-
-    GroupNorm groups are contiguous channel blocks, so P·G groups over the P·C stacked channels are
-    exactly each plane's G groups over its C channels. With one channel per group (G = C) and
-    ``opt.channels_last`` it runs as ``batch_norm`` over the batch of one (batch statistics, biased
-    variance, same eps): the same per-channel normalisation.
-    """
-    n = norms[0]
-    w = torch.cat([m.weight for m in norms])
-    b = torch.cat([m.bias for m in norms])
-    if opt.channels_last and n.num_groups == n.num_channels and x.shape[0] == 1:
-        return F.batch_norm(x, None, None, w, b, True, 0.0, n.eps)
-    return F.group_norm(x, len(norms) * n.num_groups, w, b, n.eps)
-
-
-def _resnet(blocks: Sequence[ResnetBlock2D], x: Tensor, opt: StackOptions) -> Tensor:
-    """P ``ResnetBlock2D`` at once: x [1, P·C, H, W] -> [1, P·C, H, W]."""
-    h = _conv([m.conv1 for m in blocks], F.silu(_norm([m.norm1 for m in blocks], x, opt)))
-    h = _conv([m.conv2 for m in blocks], F.silu(_norm([m.norm2 for m in blocks], h, opt)))
-    return x + h
-
-
-def _attention(layers: Sequence[SelfAttention2D], x: Tensor, opt: StackOptions) -> Tensor:
-    """P ``SelfAttention2D`` at once (batched over planes): x [1, P·C, H, W] -> [1, P·C, H, W]."""
-    P = len(layers)
-    _, PC, H, W = x.shape
-    C = PC // P
-    tokens = _norm([m.norm for m in layers], x, opt).reshape(P, C, H * W).transpose(1, 2)  # [P, HW, C]
-    w_qkv = torch.stack([torch.cat([m.to_q.weight, m.to_k.weight, m.to_v.weight]) for m in layers])  # [P, 3C, C]
-    b_qkv = torch.stack([torch.cat([m.to_q.bias, m.to_k.bias, m.to_v.bias]) for m in layers])  # [P, 3C]
-    q, k, v = torch.baddbmm(b_qkv[:, None], tokens, w_qkv.transpose(1, 2)).split(C, dim=2)  # [P, HW, C] each
-    scores = torch.bmm(q, k.transpose(1, 2)) / math.sqrt(C)  # [P, HW, HW]
-    soft_dtype = torch.float32 if scores.dtype in (torch.float16, torch.bfloat16) else scores.dtype
-    attn = torch.softmax(scores, dim=-1, dtype=soft_dtype).to(q.dtype)
-    w_out = torch.stack([m.proj_out.weight for m in layers])  # [P, C, C]
-    b_out = torch.stack([m.proj_out.bias for m in layers])  # [P, C]
-    out = torch.baddbmm(b_out[:, None], torch.bmm(attn, v), w_out.transpose(1, 2))  # [P, HW, C]
-    out = out.transpose(1, 2).reshape(1, PC, H, W)
-    if opt.channels_last:
-        out = out.contiguous(memory_format=torch.channels_last)
-    return x + out
-
-
-def _upsample(layers: Sequence[Upsample2D], x: Tensor, opt: StackOptions) -> Tensor:
-    """P ``Upsample2D`` at once: x [1, P·C, H, W] -> [1, P·C, 2H, 2W]."""
-    if opt.subpixel or layers[0].subpixel:
-        w = torch.stack([m.conv.weight for m in layers])  # [P, C, C, 3, 3]
-        b = torch.stack([m.conv.bias for m in layers])  # [P, C]
-        return subpixel_upsample_conv(x, w, b, groups=len(layers))
-    return _conv([m.conv for m in layers], F.interpolate(x, scale_factor=2.0, mode="nearest"))
-
-
-def _apply(layers: Sequence[nn.Module], x: Tensor, opt: StackOptions) -> Tensor:
-    """P same-position layers of the P generators at once: x [1, P·C, H, W] -> [1, P·C', H', W']."""
-    first = layers[0]
-    if isinstance(first, ResnetBlock2D):
-        return _resnet(layers, x, opt)  # type: ignore[arg-type]
-    if isinstance(first, SelfAttention2D):
-        return _attention(layers, x, opt)  # type: ignore[arg-type]
-    if isinstance(first, Upsample2D):
-        return _upsample(layers, x, opt)  # type: ignore[arg-type]
-    raise TypeError(f"no stacked form of {type(first).__name__}")
-
-
-def stacked_planes(generators: Sequence[TriplaneGenerator], subpixel: bool = False,
-                   channels_last: bool = False) -> Tensor:
-    """``torch.cat([g() for g in generators])`` computed as one network (exact up to rounding).
-
-    Args:
-        generators: P ``TriplaneGenerator`` of the same configuration (their own parameters are used:
-            the stacked weights are concatenated on each call, so gradients reach them).
-        subpixel: use the sub-pixel form of the up-samplers (also used where a generator was built
-            with ``subpixel_upsample=True``).
-        channels_last: channels-last activations (``StackOptions.channels_last``).
-
-    Returns:
-        The planes [P, out_channels, R, R] (contiguous).
+    The generators must share one configuration (``planes=1`` each); their parameters and noise are
+    copied in, stacked along dim 0 (``stack_plane_state``). ``channels_last`` as ``TriplaneGenerator``.
     """
     gens = list(generators)
-    P = len(gens)
-    one_per_group = all(m.num_groups == m.num_channels for g in gens for m in g.modules()
-                        if isinstance(m, nn.GroupNorm))
-    opt = StackOptions(subpixel=subpixel, channels_last=channels_last and one_per_group)
-    x = torch.cat([g.noise for g in gens], dim=1)  # [1, P·C_noise, r, r]
-    if opt.channels_last:
-        x = x.contiguous(memory_format=torch.channels_last)
-    h = _conv([g.conv_in for g in gens], x)  # [1, P·C, r, r]
-    for layers in zip(*(g.mid for g in gens), strict=True):
-        h = _apply(layers, h, opt)
-    for blocks in zip(*(g.up_blocks for g in gens), strict=True):
-        for layers in zip(*blocks, strict=True):
-            h = _apply(layers, h, opt)
-    h = _conv([g.conv_out for g in gens], F.silu(_norm([g.norm_out for g in gens], h, opt)))  # [1, P·O, R, R]
-    return h.contiguous().view(P, -1, h.shape[2], h.shape[3])
+    if any(g.planes != 1 or g.config != gens[0].config for g in gens):
+        raise ValueError("stack_generators expects one-plane generators of one configuration")
+    with torch.random.fork_rng(devices=[]):  # its own initialisation is overwritten: leave the global RNG as it was
+        stacked = TriplaneGenerator(**gens[0].config, planes=len(gens), channels_last=channels_last)
+    stacked.to(device=gens[0].noise.device, dtype=gens[0].noise.dtype)
+    stacked.load_state_dict(stack_plane_state([g.state_dict() for g in gens]))
+    return stacked
+
+
+def stack_plane_state(states: Sequence[dict[str, Tensor]]) -> dict[str, Tensor]:
+    """P one-plane generator state dicts -> the state dict of their ``planes = P`` stack (cat on dim 0)."""
+    keys = states[0].keys()
+    if any(s.keys() != keys for s in states):
+        raise ValueError("plane state dicts have different keys: not generators of one configuration")
+    return {k: torch.cat([s[k] for s in states]) for k in keys}
+
+
+def split_plane_state(state: dict[str, Tensor], planes: int) -> list[dict[str, Tensor]]:
+    """The state dict of a ``planes = P`` generator -> P one-plane state dicts (chunk p of dim 0)."""
+    out: list[dict[str, Tensor]] = [{} for _ in range(planes)]
+    for k, v in state.items():
+        if v.shape[0] % planes:
+            raise ValueError(f"{k}: dim 0 of {tuple(v.shape)} is not a multiple of {planes} planes")
+        for p, chunk in enumerate(v.chunk(planes)):
+            out[p][k] = chunk.clone()
+    return out
