@@ -262,6 +262,21 @@ def test_truncated_checkpoint_is_named_and_resume_false_starts_fresh(scene_root,
     assert torch.load(out / "checkpoint.pt", weights_only=True)["iteration"] == 5
 
 
+def test_checkpoint_with_another_parameter_list_is_named(scene_root, tmp_path):
+    """An optimiser state saved for another parameter list (e.g. an earlier network layout) is one clear error."""
+    out = tmp_path / "run"
+    cfg = config(scene_root, "trainer.iterations=6", "trainer.ckpt_every=3")
+    assert run(cfg, out)["status"] == "ok"
+    ck = torch.load(out / "checkpoint.pt", weights_only=True)
+    groups = ck["optimizer"]["param_groups"]
+    groups[0]["params"] = groups[0]["params"][:-1]  # one parameter fewer than the model has
+    torch.save(ck, out / "checkpoint.pt")
+    (out / "metrics.json").unlink()  # as after a kill: the run is not finished
+    with pytest.raises(CheckpointError, match=r"checkpoint\.pt: its optimiser state does not match .*trainer\.resume=false"):
+        run(cfg, out)
+    assert_clean(out)
+
+
 def test_checkpoint_holds_only_safe_types(scene_root, tmp_path):
     out = tmp_path / "run"
     assert run(config(scene_root, "trainer.iterations=3"), out)["status"] == "ok"

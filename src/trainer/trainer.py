@@ -247,7 +247,11 @@ class Trainer:
             ck = self.load_checkpoint(ckpt_path)
             model.load_state_dict(ck["model"])
             optimizer = make_optimizer(model)
-            optimizer.load_state_dict(ck["optimizer"])
+            try:
+                optimizer.load_state_dict(ck["optimizer"])
+            except ValueError as e:  # another parameter list: e.g. saved by a version that laid the network out otherwise
+                raise CheckpointError(f"{ckpt_path}: its optimiser state does not match this model's parameters ({e}); "
+                                      "to start fresh and keep it aside, re-run with trainer.resume=false") from None
             strategy.load_state_dict(ck["strategy"])
             rng.setstate(ck["py_rng"])
             torch.set_rng_state(ck["torch_rng"])
