@@ -28,9 +28,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from src.fields.backbones import FieldBackbone, NoBackbone
+from src.fields.encoded_row import encoded_row
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
-from src.fields.fused import HeadInput, head_outputs, head_tail, head_weights, input_row, kernel_fits
+from src.fields.fused import HeadInput, head_outputs, head_tail, head_weights, kernel_fits
 from src.fields.head_kernel import resolve_head_kernel
 from src.fields.mlp import FieldMLP, get_activation
 from src.utils.cpu import resolve_autocast_bf16
@@ -320,14 +321,14 @@ class SplatFieldNetwork(nn.Module):
                 wd = head_weights(self.deform_mlp, fid, tim)
                 dim_d = self.deform_pe.out_dim(3)
                 deform = HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)
-                (d,) = head_outputs([deform], [wd], input_row(feat, self.deform_pe(canonical)), t_enc,
+                (d,) = head_outputs([deform], [wd], encoded_row(feat, canonical, self.deform_pe), t_enc,
                                     [kern and kernel_fits(self.deform_mlp)])
                 x_can = canonical + self.deform_weight * (d if torch.is_tensor(d) else
                                                           head_tail(self.deform_mlp, wd, d, last_dtype=last))
             # per head its output (kernel) or its input blocks; a view-dependent colour head's last
             # layer reads the view directions, known after the flow: it runs through head_tail
             kernel = [kern and kernel_fits(m) and not (m is self.color_mlp and self.view_dependent) for m in mlps]
-            res = head_outputs(heads, weights, input_row(feat, self._shared_pe(x_can)), t_enc, kernel)
+            res = head_outputs(heads, weights, encoded_row(feat, x_can, self._shared_pe), t_enc, kernel)
             outs = {}
             for m, w, r in zip(mlps, weights, res, strict=True):
                 if m is not self.color_mlp:

@@ -58,6 +58,8 @@ PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
 # bilinear reads of the tri-planes (src/fields/triplane_sample.py): any CPU
 SAMPLER_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "triplane_sample.cpp"]
+# the field heads' input row [f, PE(x)] in one pass (src/fields/encoded_row.py): any CPU
+ROW_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "encoded_row.cpp"]
 # a field head's layers as one kernel on AMX-BF16 tiles (src/fields/head_kernel.py): built on AMX CPUs only
 HEAD_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_amx.cpp"]
 HEAD_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
@@ -220,6 +222,21 @@ def load_sampler_extension(verbose: bool = False) -> Any:
     """
     return _load_once("triplane_sample", SAMPLER_SOURCES, projection_compile_flags(), verbose,
                       "The tri-planes are then read with grid_sample.")
+
+
+def load_row_extension(verbose: bool = False) -> Any:
+    """Compile (if needed) and load the heads' input-row op (``src/fields/csrc/encoded_row.cpp``).
+
+    Built with the fused projection's flags into ``encoded_row_<hash>/`` of the same cache.
+
+    Returns:
+        The ``torch.ops.splatfields_cpu`` namespace (``encoded_row_forward``, ``encoded_row_backward``).
+
+    Raises:
+        RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
+    """
+    return _load_once("encoded_row", ROW_SOURCES, projection_compile_flags(), verbose,
+                      "The input rows are then concatenated by torch.")
 
 
 def load_head_extension(verbose: bool = False) -> Any:
