@@ -15,7 +15,15 @@ import pytest
 import torch
 
 from src.fields import CNNTriplaneBackbone, OffsetFlow, SplatFieldNetwork
-from src.fields.head_kernel import BLOCK_ROWS, cpu_has_amx, head_mlp, pack_in, pack_out, resolve_head_kernel
+from src.fields.head_kernel import (
+    BLOCK_ROWS,
+    cpu_has_amx,
+    head_mlp,
+    heads_mlp,
+    pack_in,
+    pack_out,
+    resolve_head_kernel,
+)
 
 amx = pytest.mark.skipif(not cpu_has_amx(), reason="needs a CPU with AMX-BF16 tiles")
 
@@ -84,6 +92,44 @@ def test_kernel_error_is_detected_by_the_comparison():
     x, a, hidden, *rest = problem
     swapped = _run((x, a, [hidden[0].t().contiguous(), hidden[1]], *rest), "kernel")
     assert _rel(swapped[0], truth[0]) > 0.1
+
+
+@amx
+@pytest.mark.parametrize("x_dtype", [torch.bfloat16, torch.float32])
+def test_heads_sharing_an_input_row_sum_their_x_gradients_in_the_kernel(x_dtype):
+    """``heads_mlp`` on one input row: each head's output and weight gradients as the head alone, and the row's
+    gradient the sum over the heads (added in the kernel, rounded once) held to the oneDNN bf16 reference's
+    error against float64; a head whose output is unused contributes nothing."""
+    shapes = [(128, 6, 4, 3), (64, 3, None, 1), (64, 3, None, 4), (64, 3, None, 3)]  # deform-, opacity-, rotation-like
+    heads = [_problem(700 + 5, 75, *shape, x_dtype, seed=i) for i, shape in enumerate(shapes)]
+    x = heads[0][0]
+
+    def run(mode: str, used: int) -> list[torch.Tensor]:
+        dt = torch.float64 if mode == "float64" else x.dtype
+        xx = x.detach().to(dt).requires_grad_()
+        layers, params = [], []
+        for _, a, hidden, bias, reads, w_out, b_out, _ in heads:
+            ps = [t.detach().to(torch.float64 if mode == "float64" else t.dtype).requires_grad_()
+                  for t in (*a, *hidden, *bias, w_out, b_out)]
+            na, nh = len(a), len(hidden)
+            layers.append((ps[:na], ps[na: na + nh], ps[na + nh: -2], reads, ps[-2], ps[-1]))
+            params += ps
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=mode != "float64"):
+            ys = heads_mlp(xx, layers, fast=mode == "kernel")
+        sum((y.double() * h[-1].double()).sum() for y, h in zip(ys[:used], heads[:used], strict=True)).backward()
+        grads = [torch.zeros_like(p) if p.grad is None else p.grad for p in params]
+        return [*(y.detach().double() for y in ys), xx.grad.double(), *(g.double() for g in grads)]
+
+    for used in (4, 3):  # every head's output in the loss; the last one's unused
+        truth, kern, ref = run("float64", used), run("kernel", used), run("onednn", used)
+        for i, (got, r, t) in enumerate(zip(kern, ref, truth, strict=True)):
+            if t.norm() == 0:  # the unused head's parameters: no gradient either way
+                assert got.norm() == 0 and r.norm() == 0, i
+                continue
+            e_k, e_r = _rel(got, t), _rel(r, t)
+            assert e_k <= 1.5 * e_r + 2e-3, f"output {i}: kernel error {e_k:.4f} vs oneDNN bf16 reference {e_r:.4f}"
+        single = _run(heads[0], "kernel")  # the first head alone: its output as in the group
+        torch.testing.assert_close(kern[0], single[0], rtol=0, atol=0)
 
 
 def test_reference_matches_the_formula_in_float64():

@@ -272,7 +272,7 @@ def test_checkpoint_with_another_parameter_list_is_named(scene_root, tmp_path):
     groups[0]["params"] = groups[0]["params"][:-1]  # one parameter fewer than the model has
     torch.save(ck, out / "checkpoint.pt")
     (out / "metrics.json").unlink()  # as after a kill: the run is not finished
-    with pytest.raises(CheckpointError, match=r"checkpoint\.pt: its optimiser state does not match .*trainer\.resume=false"):
+    with pytest.raises(CheckpointError, match=r"checkpoint\.pt: its optimiser state does not match .*resume=false"):
         run(cfg, out)
     assert_clean(out)
 

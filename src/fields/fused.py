@@ -15,7 +15,7 @@ with fewer PE levels than the group's maximum reads a prefix of PE_Lmax (the lay
 run per head, the skip layers as ``addmm(U_skip, h, W_hᵀ)`` without concatenating [N, in + width]
 tensors, and every hidden ReLU layer through ``linear_relu`` (bias and ReLU in the product's
 epilogue). On CPUs with AMX-BF16 tiles (``model.network.head_kernel``) a head instead runs whole, from
-the group's input row ``[f, PE_Lmax(x)]`` to its output, as one kernel (``kernel_head``,
+the group's input row ``[f, PE_Lmax(x)]`` to its output, as one kernel (``kernel_layers``,
 ``src.fields.head_kernel``); ``head_outputs`` sends each head of a group one way or the other. The
 parameters are the heads' own (state dicts unchanged); the fused weights are concatenated from them on
 every call (a few kB), so gradients reach every head as before.
@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from src.fields.head_kernel import head_mlp
+from src.fields.head_kernel import HeadLayers, heads_mlp
 from src.fields.linear_relu import linear_relu
 from src.fields.mlp import FieldMLP
 
@@ -116,13 +116,13 @@ def kernel_fits(mlp: FieldMLP) -> bool:
             and last not in mlp.skips and mlp.out_dim <= 64 and not mlp.output_act_quirk)
 
 
-def kernel_head(head: HeadInput, weights: list[Tensor], x: Tensor, t_enc: Tensor | None) -> Tensor:
-    """The output [N, O] float32 of one head as one AMX kernel (``src.fields.head_kernel.head_mlp``).
+def kernel_layers(head: HeadInput, weights: list[Tensor], t_enc: Tensor | None) -> HeadLayers:
+    """One head's layers as the AMX kernel takes them (``src.fields.head_kernel.heads_mlp``).
 
     Args:
-        head: the head's input-part columns (``HeadInput``; the layout of ``x``).
+        head: the head's input-part columns (``HeadInput``; the layout of its group's ``input_row``).
         weights: ``head_weights(head.mlp, ...)``.
-        x: [N, F + pe_max] ``input_row``; t_enc: [1, T] PE(t) row or None.
+        t_enc: [1, T] PE(t) row or None (folded into the input-reading linears' biases).
     """
     mlp = head.mlp
     a = head.w_x.split(head.sizes)  # [W, K] per input-reading linear
@@ -138,16 +138,19 @@ def kernel_head(head: HeadInput, weights: list[Tensor], x: Tensor, t_enc: Tensor
             reads.append(-1)
             hidden.append(weights[i])
             bias.append(mlp.layers[i].bias)
-    return head_mlp(x, a, hidden, bias, reads, weights[-1], mlp.layers[-1].bias)
+    return a, hidden, bias, reads, weights[-1], mlp.layers[-1].bias
 
 
 def head_outputs(heads: Sequence[HeadInput], weights: Sequence[list[Tensor]], x: Tensor, t_enc: Tensor | None,
                  kernel: Sequence[bool]) -> list[Tensor | list[Tensor]]:
-    """Per head of a group: its output [N, O] where ``kernel`` (``kernel_head``), else its input blocks
-    (``input_layer``, one product for all such heads) for ``head_tail``."""
+    """Per head of a group: its output [N, O] where ``kernel`` (all such heads through ``heads_mlp``, their
+    input row's gradients summed in the kernel), else its input blocks (``input_layer``, one product for all
+    such heads) for ``head_tail``."""
     dense = [h for h, k in zip(heads, kernel, strict=True) if not k]
     blocks = iter(input_layer(dense, x, t_enc) if dense else [])
-    return [kernel_head(h, w, x, t_enc) if k else next(blocks) for h, w, k in zip(heads, weights, kernel, strict=True)]
+    layers = [kernel_layers(h, w, t_enc) for h, w, k in zip(heads, weights, kernel, strict=True) if k]
+    outputs = iter(heads_mlp(x, layers) if layers else [])
+    return [next(outputs) if k else next(blocks) for k in kernel]
 
 
 def head_tail(mlp: FieldMLP, weights: list[Tensor], blocks: list[Tensor], extra: Tensor | None = None,

@@ -107,35 +107,86 @@ def _ops():
     return load_head_extension()
 
 
-class _Head(torch.autograd.Function):
-    """y of one head; inputs (x, (n_a, L, reads_x, block_rows), *a, *hidden, *bias, w_out, b_out). See the module
-    docstring."""
+class _Heads(torch.autograd.Function):
+    """y of each head of a group that reads one input row x; inputs (x, metas, *params of head 0, *params of
+    head 1, ...), each head's params (*a, *hidden, *bias, w_out, b_out) and meta (n_a, L, reads_x, block_rows).
+    The backward adds every head's x gradient into one tensor inside the kernel (no sum of [N, K] tensors)."""
 
     @staticmethod
-    def forward(ctx, x: Tensor, meta: tuple[int, int, tuple[int, ...], tuple[int, int]], *params: Tensor) -> Tensor:
-        n_a, n_h, reads_x, rows = meta
-        a, hidden, bias = params[:n_a], params[n_a: n_a + n_h], params[n_a + n_h: n_a + 2 * n_h + 1]
-        w_out, b_out = params[-2], params[-1]
-        bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
-        w_out32 = w_out.detach().float().contiguous()  # [O, W]
-        a_pad = [_padded(w) for w in a]  # [W, Kp]
-        y, H = _ops().head_forward(x.detach(), [pack_in(w) for w in a_pad], [pack_in(w) for w in hidden],
-                                   bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
-        ctx.save_for_backward(x, w_out32, *H, *a_pad, *hidden)
-        ctx.meta = (meta, [p.dtype for p in params])
-        return y
+    def forward(ctx, x: Tensor, metas: tuple[tuple[int, int, tuple[int, ...], tuple[int, int]], ...],
+                *params: Tensor) -> tuple[Tensor, ...]:
+        ys, saved, spans, k = [], [x], [], 0
+        for n_a, n_h, reads_x, rows in metas:
+            p = params[k: k + n_a + 2 * n_h + 3]
+            k += len(p)
+            a, hidden, bias = p[:n_a], p[n_a: n_a + n_h], p[n_a + n_h: n_a + 2 * n_h + 1]
+            w_out, b_out = p[-2], p[-1]
+            bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
+            w_out32 = w_out.detach().float().contiguous()  # [O, W]
+            a_pad = [_padded(w) for w in a]  # [W, Kp]
+            y, H = _ops().head_forward(x.detach(), [pack_in(w) for w in a_pad], [pack_in(w) for w in hidden],
+                                       bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
+            ys.append(y)
+            spans.append((len(saved), len(p)))
+            saved += [w_out32, *H, *a_pad, *hidden]
+        ctx.save_for_backward(*saved)
+        ctx.meta = (metas, spans, [p.dtype for p in params])
+        return tuple(ys)
 
     @staticmethod
-    def backward(ctx, g_y: Tensor):
-        (n_a, n_h, reads_x, rows), dtypes = ctx.meta
-        x, w_out32, *rest = ctx.saved_tensors
-        H, a_pad, hidden = rest[: n_h + 1], rest[n_h + 1: n_h + 1 + n_a], rest[n_h + 1 + n_a:]
-        g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
-            g_y.float().contiguous(), x, H, [pack_out(w) for w in a_pad], [pack_out(w) for w in hidden],
-            list(reads_x), w_out32, rows[1])
-        k = x.shape[1]
-        grads = [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
-        return (g_x.to(x.dtype), None, *[g.to(dt) for g, dt in zip(grads, dtypes, strict=True)])
+    def backward(ctx, *g_ys: Tensor | None):
+        metas, spans, dtypes = ctx.meta
+        x, *_ = saved = ctx.saved_tensors
+        g_x, grads = None, []
+        for (n_a, n_h, reads_x, rows), (start, n_params), g_y in zip(metas, spans, g_ys, strict=True):
+            if g_y is None:  # this head's output is unused: no gradient from it
+                grads += [None] * n_params
+                continue
+            w_out32 = saved[start]
+            H = saved[start + 1: start + n_h + 2]
+            a_pad = saved[start + n_h + 2: start + n_h + 2 + n_a]
+            hidden = saved[start + n_h + 2 + n_a: start + 2 * n_h + 2 + n_a]
+            g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
+                g_y.float().contiguous(), x, list(H), [pack_out(w) for w in a_pad], [pack_out(w) for w in hidden],
+                list(reads_x), w_out32, rows[1], g_x)
+            k = x.shape[1]
+            grads += [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
+        grads = [g if g is None else g.to(dt) for g, dt in zip(grads, dtypes, strict=True)]
+        return (g_x, None, *grads)
+
+
+HeadLayers = tuple[Sequence[Tensor], Sequence[Tensor], Sequence[Tensor], Sequence[int], Tensor, Tensor]
+"""One head's layers as ``head_mlp`` takes them: (a, hidden, bias, reads_x, w_out, b_out)."""
+
+
+def heads_mlp(x: Tensor, heads: Sequence[HeadLayers], fast: bool = True,
+              block_rows: tuple[int, int] = BLOCK_ROWS) -> list[Tensor]:
+    """``[head_mlp(x, *h, fast) for h in heads]``: the heads of a group that read the same input row, their x
+    gradients summed inside the kernel's backward (fast). Each output [N, O_h] float32."""
+    for _, hidden, bias, reads_x, _, _ in heads:
+        if reads_x[0] != 0 or len(reads_x) != len(hidden) + 1 or len(bias) != len(hidden) + 1:
+            raise ValueError(f"head_mlp: {len(hidden)} hidden layers need {len(hidden) + 1} biases and reads_x "
+                             f"starting at 0, got {len(bias)} and {list(reads_x)}")
+    if not fast:
+        return [_reference(x, *h) for h in heads]
+    rows = (int(block_rows[0]), int(block_rows[1]))
+    metas = tuple((len(a), len(hidden), tuple(int(r) for r in reads_x), rows) for a, hidden, _, reads_x, _, _ in heads)
+    params = [t for a, hidden, bias, _, w_out, b_out in heads for t in (*a, *hidden, *bias, w_out, b_out)]
+    return list(_Heads.apply(x, metas, *params))
+
+
+def _reference(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Sequence[Tensor],
+               reads_x: Sequence[int], w_out: Tensor, b_out: Tensor) -> Tensor:
+    """``head_mlp`` through oneDNN, one layer at a time (bf16 products under autocast, the output layer in the
+    masters' dtype)."""
+    h = torch.relu(F.linear(x, a[0], bias[0]))  # [N, W]
+    for l, w in enumerate(hidden, start=1):
+        z = F.linear(h, w, bias[l])
+        if reads_x[l] >= 0:
+            z = z + F.linear(x, a[reads_x[l]])
+        h = torch.relu(z)
+    with torch.autocast(x.device.type, enabled=False):  # in the masters' dtype (float32; float64 in checks)
+        return F.linear(h.to(w_out.dtype), w_out, b_out)
 
 
 def head_mlp(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Sequence[Tensor],
@@ -154,17 +205,4 @@ def head_mlp(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: Seq
             time (bf16 products under autocast, the output layer in the masters' dtype).
         block_rows: splats per block of the kernel's forward and backward (each 32, 64, ..., 256).
     """
-    if reads_x[0] != 0 or len(reads_x) != len(hidden) + 1 or len(bias) != len(hidden) + 1:
-        raise ValueError(f"head_mlp: {len(hidden)} hidden layers need {len(hidden) + 1} biases and reads_x "
-                         f"starting at 0, got {len(bias)} and {list(reads_x)}")
-    if fast:
-        meta = (len(a), len(hidden), tuple(int(r) for r in reads_x), (int(block_rows[0]), int(block_rows[1])))
-        return _Head.apply(x, meta, *a, *hidden, *bias, w_out, b_out)
-    h = torch.relu(F.linear(x, a[0], bias[0]))  # [N, W]
-    for l, w in enumerate(hidden, start=1):
-        z = F.linear(h, w, bias[l])
-        if reads_x[l] >= 0:
-            z = z + F.linear(x, a[reads_x[l]])
-        h = torch.relu(z)
-    with torch.autocast(x.device.type, enabled=False):  # in the masters' dtype (float32; float64 in checks)
-        return F.linear(h.to(w_out.dtype), w_out, b_out)
+    return heads_mlp(x, [(a, hidden, bias, reads_x, w_out, b_out)], fast, block_rows)[0]

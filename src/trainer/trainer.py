@@ -249,7 +249,7 @@ class Trainer:
             optimizer = make_optimizer(model)
             try:
                 optimizer.load_state_dict(ck["optimizer"])
-            except ValueError as e:  # another parameter list: e.g. saved by a version that laid the network out otherwise
+            except ValueError as e:  # another parameter list (e.g. saved by a version with another network layout)
                 raise CheckpointError(f"{ckpt_path}: its optimiser state does not match this model's parameters ({e}); "
                                       "to start fresh and keep it aside, re-run with trainer.resume=false") from None
             strategy.load_state_dict(ck["strategy"])

@@ -221,19 +221,35 @@ void vnni_rows(const uint16_t* src, int64_t ld, int nr, int rows, int C, uint16_
 }
 
 // Rows r0 .. r0+nr of g [N, K] (float32, or bf16 rounded to nearest even) from the block gb [rows, Kp] float32.
-void store_x_rows(at::Tensor& g, int64_t r0, int nr, int K, int Kp, const float* gb) {
+// Rows r0 .. r0+nr of g [N, K] (float32 or bf16) from the block's float32 gradient gb [rows, Kp]: written, or with
+// add = true added to what g holds (bf16: the sum rounded once, to nearest even).
+void store_x_rows(at::Tensor& g, int64_t r0, int nr, int K, int Kp, const float* gb, bool add) {
   if (g.scalar_type() == at::kFloat) {
     float* gp = g.data_ptr<float>();
-    for (int r = 0; r < nr; ++r) std::memcpy(gp + (r0 + r) * K, gb + r * Kp, sizeof(float) * K);
+    for (int r = 0; r < nr; ++r) {
+      float* dst = gp + (r0 + r) * K;
+      if (add) {
+        for (int c = 0; c < K; ++c) dst[c] += gb[r * Kp + c];
+      } else {
+        std::memcpy(dst, gb + r * Kp, sizeof(float) * K);
+      }
+    }
     return;
   }
   uint16_t* gp = bf16_ptr_mut(g);
   for (int r = 0; r < nr; ++r) {
     for (int c = 0; c < K; c += 32) {
-      __m512bh v = _mm512_cvtne2ps_pbh(load16(gb + r * Kp + c + 16), load16(gb + r * Kp + c));
       const int n = std::min(32, K - c);
       const __mmask32 m = n >= 32 ? ~static_cast<__mmask32>(0) : (static_cast<__mmask32>(1) << n) - 1;
-      _mm512_mask_storeu_epi16(gp + (r0 + r) * K + c, m, reinterpret_cast<__m512i&>(v));
+      uint16_t* dst = gp + (r0 + r) * K + c;
+      __m512 lo = load16(gb + r * Kp + c), hi = load16(gb + r * Kp + c + 16);
+      if (add) {  // the held bf16 values widened to float32 (a bf16 is the top half of a float32)
+        const __m512i held = _mm512_maskz_loadu_epi16(m, dst);
+        lo = _mm512_add_ps(lo, _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(_mm512_castsi512_si256(held)), 16)));
+        hi = _mm512_add_ps(hi, _mm512_castsi512_ps(_mm512_slli_epi32(_mm512_cvtepu16_epi32(_mm512_extracti64x4_epi64(held, 1)), 16)));
+      }
+      __m512bh v = _mm512_cvtne2ps_pbh(hi, lo);
+      _mm512_mask_storeu_epi16(dst, m, reinterpret_cast<__m512i&>(v));
     }
   }
 }
@@ -356,11 +372,14 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
 
 // Backward. g_y [N, O] float32; x, H (h_0..h_L) from the forward; a_out[s] [W/2, Kp, 2] the input weights packed
 // over their output; w_out_packs[l] [W/2, W, 2] the hidden weights packed over their output; reads_x as in the
-// forward; w_out [O, W] float32. Returns (g_x [N, K] in x's dtype, g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W],
-// g_w_out [O, W], g_b_out [O]), all float32.
+// forward; w_out [O, W] float32; g_x_into: none, or a contiguous [N, K] tensor in x's dtype that this head's x
+// gradient is added into (the heads that read one input row sum their gradients there, each block once in
+// cache). Returns (g_x [N, K] in x's dtype: g_x_into itself when given, g_a [S, W, Kp], g_w [L, W, W],
+// g_bias [L+1, W], g_w_out [O, W], g_b_out [O]), all but g_x float32.
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> head_backward(
     const at::Tensor& g_y, const at::Tensor& x, std::vector<at::Tensor> H, std::vector<at::Tensor> a_out,
-    std::vector<at::Tensor> w_packs, std::vector<int64_t> reads_x, const at::Tensor& w_out, int64_t block_rows) {
+    std::vector<at::Tensor> w_packs, std::vector<int64_t> reads_x, const at::Tensor& w_out, int64_t block_rows,
+    const c10::optional<at::Tensor>& g_x_into) {
   const char* fn = "head_backward";
   const int rows = check_rows(block_rows, fn);
   const Shape s = check_head(x, static_cast<int64_t>(a_out.size()), static_cast<int64_t>(w_packs.size()), reads_x, w_out, fn);
@@ -388,7 +407,12 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const float* gyp = g_y.data_ptr<float>();
   const float* wo = w_out.data_ptr<float>();
   const auto fopts = g_y.options().dtype(at::kFloat);
-  at::Tensor g_x = at::empty({N, K}, x.options().memory_format(at::MemoryFormat::Contiguous));
+  const bool add = g_x_into.has_value() && g_x_into->defined();
+  if (add)
+    TORCH_CHECK(g_x_into->scalar_type() == x.scalar_type() && g_x_into->is_contiguous() && g_x_into->dim() == 2 &&
+                g_x_into->size(0) == N && g_x_into->size(1) == K, fn, ": g_x_into must be a contiguous [", N, ", ", K,
+                "] tensor in x's dtype");
+  at::Tensor g_x = add ? *g_x_into : at::empty({N, K}, x.options().memory_format(at::MemoryFormat::Contiguous));
   const int n_threads = std::max(1, at::get_num_threads());  // torch's thread count, as in the forward
   // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [O, W], g_b_out [O]
   const int64_t n_a = static_cast<int64_t>(S) * W * Kp, n_w = static_cast<int64_t>(L) * W * W;
@@ -485,7 +509,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
         gemm(gpt, rows, hv, rows, W, gw_t + static_cast<int64_t>(l - 1) * W * W, W, W, true);  // g_W += gᵀ h
         gemm(gpb, W, wp[l - 1], W, W, g, W, rows, false);                                      // g_h = g W
       }
-      store_x_rows(g_x, r0, nr, K, Kp, gx);
+      store_x_rows(g_x, r0, nr, K, Kp, gx, add);
     }
     _tile_release();
   }
