@@ -12,6 +12,8 @@ bf16 as the kernel's do), which ``tests/test_head_kernel.py`` compares with the 
 gradients, both against float64 autograd. The kernel's products round their operands to bf16 and
 accumulate in float32, as oneDNN's do under CPU bf16 autocast; the output layer runs in float32 on the
 bf16 h_L, as the fused path's float32 output layers do. Every gradient comes back in its input's dtype.
+``heads_mlp(x, heads)`` runs several heads that read the same row as one autograd function: the kernel's
+backward adds each head's row gradient into one tensor, a block at a time in cache.
 
 The kernel runs only on CPUs with AMX-BF16 tiles (``cpu_has_amx``); ``model.network.head_kernel``
 (``auto | on | off``) chooses it (``auto``: wherever the fused heads run in bf16 on such a CPU).
