@@ -147,8 +147,9 @@ class CNNTriplaneBackbone(FieldBackbone):
             for p in range(3)
         ]
         # one stacked generator, or the three per-plane ones (the reference)
+        channels_last = self.stack_channels_last and norm_groups == channels  # slow channels-last GroupNorm otherwise
         self.generators = nn.ModuleList(
-            [stack_generators(per_plane, channels_last=self.stack_channels_last)] if self.stack_planes else per_plane)
+            [stack_generators(per_plane, channels_last=channels_last)] if self.stack_planes else per_plane)
         if self.stack_planes:  # the state dict in the per-plane layout both ways
             self.register_state_dict_post_hook(_split_stacked_state)
             self.register_load_state_dict_pre_hook(_stack_plane_state)

@@ -247,7 +247,8 @@ class TriplaneGenerator(nn.Module):
             (``subpixel_upsample_conv``; same function and parameters). Default False (reference).
         planes: P independent generators as one network, parameters stacked along dim 0 (module
             docstring); 1 is the per-plane reference.
-        channels_last: run the activations channels-last (module docstring); the same function.
+        channels_last: run the activations channels-last (module docstring); the same function. Meant for
+            one channel per group: other GroupNorms run channels-last through GroupNorm's slow kernel.
     """
 
     def __init__(
