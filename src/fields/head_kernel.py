@@ -85,20 +85,20 @@ def resolve_head_kernel(mode: bool | str, bf16: bool) -> bool:
 
 
 def pack_in(w: Tensor) -> Tensor:
-    """[out, in] weight -> bf16 pack "VNNI over input" [in/2, out, 2] (p[k, o, j] = W[o, 2k + j])."""
-    o, i = w.shape
-    return w.detach().to(torch.bfloat16).reshape(o, i // 2, 2).permute(1, 0, 2).contiguous()
+    """[..., out, in] weight(s) -> bf16 pack "VNNI over input" [..., in/2, out, 2] (p[k, o, j] = W[o, 2k + j])."""
+    *lead, o, i = w.shape
+    return w.detach().to(torch.bfloat16).reshape(*lead, o, i // 2, 2).transpose(-3, -2).contiguous()
 
 
 def pack_out(w: Tensor) -> Tensor:
-    """[out, in] weight -> bf16 pack "VNNI over output" [out/2, in, 2] (p[k, i, j] = W[2k + j, i])."""
-    o, i = w.shape
-    return w.detach().to(torch.bfloat16).reshape(o // 2, 2, i).permute(0, 2, 1).contiguous()
+    """[..., out, in] weight(s) -> bf16 pack "VNNI over output" [..., out/2, in, 2] (p[k, i, j] = W[2k + j, i])."""
+    *lead, o, i = w.shape
+    return w.detach().to(torch.bfloat16).reshape(*lead, o // 2, 2, i).transpose(-2, -1).contiguous()
 
 
 def _padded(w: Tensor) -> Tensor:
-    """[W, K] input weight zero-padded to [W, Kp] (Kp: K rounded up to the tiles' 32 columns)."""
-    return F.pad(w.detach(), (0, -w.shape[1] % 32))
+    """[..., W, K] input weight(s) zero-padded to [..., W, Kp] (Kp: K rounded up to the tiles' 32 columns)."""
+    return F.pad(w.detach(), (0, -w.shape[-1] % 32))
 
 
 def _ops():
@@ -125,12 +125,14 @@ class _Heads(torch.autograd.Function):
             w_out, b_out = p[-2], p[-1]
             bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
             w_out32 = w_out.detach().float().contiguous()  # [O, W]
-            a_pad = [_padded(w) for w in a]  # [W, Kp]
-            y, H = _ops().head_forward(x.detach(), [pack_in(w) for w in a_pad], [pack_in(w) for w in hidden],
+            a_pad = _padded(torch.stack([w.detach() for w in a]))  # [S, W, Kp]
+            width = a_pad.shape[1]
+            w_h = torch.stack([w.detach() for w in hidden]) if hidden else a_pad.new_zeros(0, width, width)  # [L, W, W]
+            y, H = _ops().head_forward(x.detach(), list(pack_in(a_pad).unbind(0)), list(pack_in(w_h).unbind(0)),
                                        bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
             ys.append(y)
             spans.append((len(saved), len(p)))
-            saved += [w_out32, *H, *a_pad, *hidden]
+            saved += [w_out32, *H, a_pad, w_h]  # the weights stacked: [S, W, Kp] and [L, W, W]
         ctx.save_for_backward(*saved)
         ctx.meta = (metas, spans, [p.dtype for p in params])
         return tuple(ys)
@@ -140,16 +142,15 @@ class _Heads(torch.autograd.Function):
         metas, spans, dtypes = ctx.meta
         x, *_ = saved = ctx.saved_tensors
         g_x, grads = None, []
-        for (n_a, n_h, reads_x, rows), (start, n_params), g_y in zip(metas, spans, g_ys, strict=True):
+        for (_, n_h, reads_x, rows), (start, n_params), g_y in zip(metas, spans, g_ys, strict=True):
             if g_y is None:  # this head's output is unused: no gradient from it
                 grads += [None] * n_params
                 continue
             w_out32 = saved[start]
             H = saved[start + 1: start + n_h + 2]
-            a_pad = saved[start + n_h + 2: start + n_h + 2 + n_a]
-            hidden = saved[start + n_h + 2 + n_a: start + 2 * n_h + 2 + n_a]
+            a_pad, w_h = saved[start + n_h + 2], saved[start + n_h + 3]
             g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
-                g_y.float().contiguous(), x, list(H), [pack_out(w) for w in a_pad], [pack_out(w) for w in hidden],
+                g_y.float().contiguous(), x, list(H), list(pack_out(a_pad).unbind(0)), list(pack_out(w_h).unbind(0)),
                 list(reads_x), w_out32, rows[1], g_x)
             k = x.shape[1]
             grads += [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
