@@ -12,29 +12,17 @@ elsewhere, and with ``fast=False``, the reference is ``src.fields.fused.input_ro
 
 from __future__ import annotations
 
-import functools
-import logging
-
 import torch
 from torch import Tensor
 
 from src.fields.encoding import PositionalEncoding
 from src.fields.fused import input_row
+from src.rasterizer._build import field_op_ready
 
-log = logging.getLogger(__name__)
 
-
-@functools.cache
 def row_op_ready() -> bool:
-    """True when the op's extension is built and loaded (a failed build warns once: torch then)."""
-    from src.rasterizer._build import load_row_extension
-
-    try:
-        load_row_extension()
-    except RuntimeError as exc:
-        log.warning("the compiled input-row op is unavailable, concatenating with torch (%s)", exc)
-        return False
-    return True
+    """True when the input-row op's extension is built and loaded (a failed build warns once: torch's path then)."""
+    return field_op_ready("encoded_row")
 
 
 class _EncodedRow(torch.autograd.Function):

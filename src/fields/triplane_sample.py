@@ -12,27 +12,16 @@ points are buffers; eager mode); elsewhere, and with ``fast=False``, the referen
 
 from __future__ import annotations
 
-import functools
-import logging
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-log = logging.getLogger(__name__)
+from src.rasterizer._build import field_op_ready
 
 
-@functools.cache
 def sampler_ready() -> bool:
-    """True when the kernel's extension is built and loaded (a failed build warns once: ``grid_sample`` then)."""
-    from src.rasterizer._build import load_sampler_extension
-
-    try:
-        load_sampler_extension()
-    except RuntimeError as exc:
-        log.warning("the compiled tri-plane sampler is unavailable, using grid_sample (%s)", exc)
-        return False
-    return True
+    """True when the sampler's extension is built and loaded (a failed build warns once: torch's path then)."""
+    return field_op_ready("triplane_sample")
 
 
 class _Sample(torch.autograd.Function):

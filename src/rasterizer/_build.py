@@ -32,7 +32,9 @@ projection's float operations bit for bit.
 
 from __future__ import annotations
 
+import functools
 import hashlib
+import logging
 import os
 import platform
 import sys
@@ -56,16 +58,22 @@ PROJ_SOURCES = [CSRC / "project_cpu.cpp"]
 PROJ_CFLAGS = ["-O3", "-fno-fast-math", "-ffp-contract=off", "-fopenmp"]
 # 2D Gaussian surfel compositing (2DGS): its own shared object, built on first use by the surfel backend only
 SURFEL_SOURCES = [CSRC / "surfel_cpu.cpp"]
-# bilinear reads of the tri-planes (src/fields/triplane_sample.py): any CPU
-SAMPLER_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "triplane_sample.cpp"]
-# the field heads' input row [f, PE(x)] in one pass (src/fields/encoded_row.py): any CPU
-ROW_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "encoded_row.cpp"]
+FIELD_CSRC = Path(__file__).resolve().parents[1] / "fields" / "csrc"
+# the field ops built on any CPU with the projection's flags: name -> (source, what runs when the build fails)
+FIELD_OPS = {
+    "triplane_sample": (FIELD_CSRC / "triplane_sample.cpp",  # bilinear tri-plane reads (fields/triplane_sample.py)
+                        "The tri-planes are then read with grid_sample."),
+    "encoded_row": (FIELD_CSRC / "encoded_row.cpp",  # the heads' input row [f, PE(x)] (fields/encoded_row.py)
+                    "The input rows are then concatenated by torch."),
+}
 # a field head's layers as one kernel on AMX-BF16 tiles (src/fields/head_kernel.py): built on AMX CPUs only
-HEAD_SOURCES = [Path(__file__).resolve().parents[1] / "fields" / "csrc" / "head_amx.cpp"]
+HEAD_SOURCES = [FIELD_CSRC / "head_amx.cpp"]
 HEAD_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
                      "-mamx-bf16"]
 
 OPS_NAMESPACE = "splatfields_cpu"
+
+log = logging.getLogger(__name__)
 
 _lock = threading.Lock()
 _module: Any = None
@@ -209,34 +217,30 @@ def load_surfel_extension(verbose: bool = False) -> Any:
                       "Use rasterizer=torch_ref as a slow fallback.")
 
 
-def load_sampler_extension(verbose: bool = False) -> Any:
-    """Compile (if needed) and load the tri-plane sampler (``src/fields/csrc/triplane_sample.cpp``).
+def load_field_op(name: str, verbose: bool = False) -> Any:
+    """Compile (if needed) and load the field op ``name`` of ``FIELD_OPS`` (``src/fields/csrc/<name>.cpp``).
 
-    Built with the fused projection's flags into ``triplane_sample_<hash>/`` of the same cache.
+    Built with the fused projection's flags into ``<name>_<hash>/`` of the same cache.
 
     Returns:
-        The ``torch.ops.splatfields_cpu`` namespace (``triplane_sample_forward``, ``triplane_sample_backward``).
+        The ``torch.ops.splatfields_cpu`` namespace (``<name>_forward``, ``<name>_backward``).
 
     Raises:
         RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
     """
-    return _load_once("triplane_sample", SAMPLER_SOURCES, projection_compile_flags(), verbose,
-                      "The tri-planes are then read with grid_sample.")
+    source, fallback = FIELD_OPS[name]
+    return _load_once(name, [source], projection_compile_flags(), verbose, fallback)
 
 
-def load_row_extension(verbose: bool = False) -> Any:
-    """Compile (if needed) and load the heads' input-row op (``src/fields/csrc/encoded_row.cpp``).
-
-    Built with the fused projection's flags into ``encoded_row_<hash>/`` of the same cache.
-
-    Returns:
-        The ``torch.ops.splatfields_cpu`` namespace (``encoded_row_forward``, ``encoded_row_backward``).
-
-    Raises:
-        RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
-    """
-    return _load_once("encoded_row", ROW_SOURCES, projection_compile_flags(), verbose,
-                      "The input rows are then concatenated by torch.")
+@functools.cache
+def field_op_ready(name: str) -> bool:
+    """True when the field op ``name`` is built and loaded; a failed build warns once (its torch path then runs)."""
+    try:
+        load_field_op(name)
+    except RuntimeError as exc:
+        log.warning("the compiled field op %s is unavailable (%s)", name, exc)
+        return False
+    return True
 
 
 def load_head_extension(verbose: bool = False) -> Any:
