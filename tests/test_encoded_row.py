@@ -42,6 +42,21 @@ def test_op_equals_the_torch_row_in_float64(n, f_dim, d, levels):
 
 
 @compiled
+@pytest.mark.parametrize("d", [3, 2])  # 3: the op's unrolled path for positions; 2: its general path
+def test_bf16_row_is_the_torch_row_bit_for_bit(d):
+    """The op's sines and cosines are ATen's on the same x 2^l and it rounds to bf16 to nearest even, as torch does:
+    the row equals ``input_row(f, pe(x))`` bit for bit (ties, infinities, subnormals; NaN where torch's is)."""
+    pe = PositionalEncoding(4)
+    f, x = _inputs(300, 48, d, seed=3)
+    ties = torch.tensor([1 + 2 ** -8, 1 + 3 * 2 ** -8, -(1 + 2 ** -8), float("inf"), float("nan"), 2 ** -130])
+    x[3: 3 + len(ties), 0] = ties  # halfway between two bf16 values: round to the even one
+    row = encoded_row(f.bfloat16(), x, pe, fast=True)
+    ref = encoded_row(f.bfloat16(), x, pe, fast=False)
+    torch.testing.assert_close(row.float(), ref.float(), rtol=0, atol=0, equal_nan=True)
+    assert row.isnan().any()
+
+
+@compiled
 def test_bf16_row_rounds_as_the_torch_row():
     """In bf16 (the fused heads under autocast) the op rounds each value as ``pe(x).to(bf16)`` does."""
     pe = PositionalEncoding(4)

@@ -3,25 +3,23 @@
 // row[n] = [f[n, 0..F), x[n, 0..d), sin(2^0 x[n]), cos(2^0 x[n]), ..., sin(2^(L-1) x[n]), cos(2^(L-1) x[n])]
 // (the positional encoding's layout, src/fields/encoding.py: level-major, sin then cos, each over all d inputs;
 // frequencies 2^l without pi), in f's dtype (float32 or bfloat16, rounded to nearest even). sin and cos of
-// 2^l x are ATen's vectorised float32 ones on x 2^l (the torch encoding's values bit for bit), kept for the
-// backward as sc [2, N, L, d].
+// 2^l x are ATen's vectorised float32 ones, in place on x 2^l (a product by a power of two: exact), so the
+// torch encoding's values bit for bit; they are kept for the backward as sc [2, N, L, d].
 // Backward: g_f = g[:, 0..F), g_x[j] = g[F + j] + sum_l 2^l (cos(2^l x_j) g_sin[l, j] - sin(2^l x_j) g_cos[l, j]).
 
 #include <ATen/Parallel.h>
 #include <ATen/core/Tensor.h>
-#include <ATen/ops/arange.h>
 #include <ATen/ops/cos.h>
 #include <ATen/ops/empty.h>
-#include <ATen/ops/exp2.h>
-#include <ATen/ops/mul.h>
 #include <ATen/ops/sin.h>
-#include <ATen/ops/stack.h>
 #include <c10/util/BFloat16.h>
 #include <torch/library.h>
 
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <tuple>
+#include <type_traits>
 
 namespace {
 
@@ -36,29 +34,58 @@ void check_x(const at::Tensor& x, int64_t L) {
               x.size(1), " and ", L);
 }
 
-// sin and cos of x 2^l: [2, N, L, d] float32 (ATen's kernels, as the torch encoding computes them).
+// sin and cos of x 2^l: [2, N, L, d] float32 (ATen's kernels in place on x 2^l, as the torch encoding computes them).
 at::Tensor sin_cos(const at::Tensor& x, int64_t L) {
-  const at::Tensor freqs = at::exp2(at::arange(L, x.options()));  // [L]: 2^0 .. 2^(L-1), exact
-  const at::Tensor xf = at::mul(x.unsqueeze(1), freqs.view({1, L, 1}));  // [N, L, d]
-  return at::stack({at::sin(xf), at::cos(xf)});
+  const int64_t N = x.size(0), d = x.size(1), S = N * L * d;
+  at::Tensor sc = at::empty({2, N, L, d}, x.options());
+  const float* xp = x.data_ptr<float>();
+  float* s = sc.data_ptr<float>();
+  float freq[kMaxLevels];  // 2^0 .. 2^(L-1), exact
+  for (int64_t l = 0; l < L; ++l) freq[l] = std::ldexp(1.0f, static_cast<int>(l));
+  at::parallel_for(0, N, 1024, [&](int64_t begin, int64_t end) {
+    for (int64_t n = begin; n < end; ++n)
+      for (int64_t l = 0; l < L; ++l)
+        for (int64_t j = 0; j < d; ++j) s[(n * L + l) * d + j] = s[S + (n * L + l) * d + j] = xp[n * d + j] * freq[l];
+  });
+  sc.select(0, 0).sin_();
+  sc.select(0, 1).cos_();
+  return sc;
 }
 
-template <typename T>
-void forward_rows(const T* f, const float* x, const float* sc, T* out, int64_t N, int64_t F, int64_t d, int64_t L) {
-  const int64_t D = F + d * (1 + 2 * L), S = N * L * d;
+// float32 -> bfloat16 bits, round to nearest even (c10::BFloat16's rounding, NaN -> 0x7fc0), branch-free
+inline uint16_t to_bf16(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof(u));
+  const uint16_t r = static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+  return v != v ? static_cast<uint16_t>(0x7fc0) : r;
+}
+inline void store_row(float* o, const float* v, int64_t n) { std::memcpy(o, v, sizeof(float) * n); }
+inline void store_row(c10::BFloat16* o, const float* v, int64_t n) {
+  uint16_t* ob = reinterpret_cast<uint16_t*>(o);
+  for (int64_t k = 0; k < n; ++k) ob[k] = to_bf16(v[k]);
+}
+
+constexpr int64_t kMaxPe = kMaxDims * (1 + 2 * kMaxLevels);
+
+// DIMS: d known at compile time (3, positions: the gathers unrolled), or 0 (d at run time)
+template <typename T, int DIMS>
+void forward_rows(const T* f, const float* x, const float* sc, T* out, int64_t N, int64_t F, int64_t d_run, int64_t L) {
+  const int64_t d = DIMS > 0 ? DIMS : d_run;
+  const int64_t P = d * (1 + 2 * L), D = F + P, S = N * L * d;
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
+    float pe[kMaxPe];  // one row's PE(x) in float32, converted in one pass
     for (int64_t n = begin; n < end; ++n) {
       T* o = out + n * D;
-      for (int64_t k = 0; k < F; ++k) o[k] = f[n * F + k];
-      T* pe = o + F;
-      for (int64_t j = 0; j < d; ++j) pe[j] = T(x[n * d + j]);
+      if (F > 0) std::memcpy(o, f + n * F, sizeof(T) * F);
       const float* s = sc + n * L * d;
       const float* c = s + S;
+      for (int64_t j = 0; j < d; ++j) pe[j] = x[n * d + j];
       for (int64_t l = 0; l < L; ++l)
         for (int64_t j = 0; j < d; ++j) {
-          pe[d * (1 + 2 * l) + j] = T(s[l * d + j]);
-          pe[d * (2 + 2 * l) + j] = T(c[l * d + j]);
+          pe[d * (1 + 2 * l) + j] = s[l * d + j];
+          pe[d * (2 + 2 * l) + j] = c[l * d + j];
         }
+      store_row(o + F, pe, P);
     }
   });
 }
@@ -69,8 +96,7 @@ void backward_rows(const T* g, const float* sc, T* g_f, float* g_x, int64_t N, i
   at::parallel_for(0, N, 256, [&](int64_t begin, int64_t end) {
     for (int64_t n = begin; n < end; ++n) {
       const T* gr = g + n * D;
-      if (g_f != nullptr)
-        for (int64_t k = 0; k < F; ++k) g_f[n * F + k] = gr[k];
+      if (g_f != nullptr) std::memcpy(g_f + n * F, gr, sizeof(T) * F);
       if (g_x == nullptr) continue;
       const T* gp = gr + F;
       const float* s = sc + n * L * d;
@@ -96,14 +122,21 @@ std::tuple<at::Tensor, at::Tensor> encoded_row_forward(const at::Tensor& f, cons
               "encoded_row: f must be a contiguous float32 or bfloat16 CPU tensor [N, F] with x's N, got ", f.sizes(),
               " ", f.scalar_type());
   const int64_t N = x.size(0), d = x.size(1), F = f.size(1);
-  const at::Tensor sc = sin_cos(x, L).contiguous();
+  const at::Tensor sc = sin_cos(x, L);
   at::Tensor out = at::empty({N, F + d * (1 + 2 * L)}, f.options());
+  auto rows = [&](auto* fp, auto* op) {
+    using T = std::remove_pointer_t<decltype(op)>;
+    const float *xp = x.data_ptr<float>(), *scp = sc.data_ptr<float>();
+    if (d == 3) {
+      forward_rows<T, 3>(fp, xp, scp, op, N, F, d, L);
+    } else {
+      forward_rows<T, 0>(fp, xp, scp, op, N, F, d, L);
+    }
+  };
   if (f.scalar_type() == at::kFloat) {
-    forward_rows<float>(f.data_ptr<float>(), x.data_ptr<float>(), sc.data_ptr<float>(), out.data_ptr<float>(), N, F, d,
-                        L);
+    rows(f.data_ptr<float>(), out.data_ptr<float>());
   } else {
-    forward_rows<c10::BFloat16>(f.data_ptr<c10::BFloat16>(), x.data_ptr<float>(), sc.data_ptr<float>(),
-                                out.data_ptr<c10::BFloat16>(), N, F, d, L);
+    rows(f.data_ptr<c10::BFloat16>(), out.data_ptr<c10::BFloat16>());
   }
   return {out, sc};
 }
