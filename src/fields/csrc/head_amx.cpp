@@ -10,9 +10,10 @@
 // layers write one wide [N, S] product that the backward gathers again, the output layer runs on a float32
 // copy of h_L, and the backward runs separate passes for masks, bias sums and products. Here a block of
 // splats (block_rows: 32..256) goes through ALL layers while it sits in cache: per layer 16-row AMX tiles against the packed
-// weights, bias and ReLU applied on the float32 tile result, rounded to bf16 as the next layer's input; the
-// output layer in float32 FMAs on the bf16 h_L. Only the activations h_0..h_L leave the cache (bf16, one
-// [N, W] tensor per layer), for the backward. The backward walks the same blocks from y down to x: output
+// weights, starting from the bias (a skip layer's two products into the same tiles), ReLU applied on the float32
+// tile result, rounded to bf16 as the next layer's input; the output layer in float32 FMAs on the bf16 h_L. Only
+// the activations h_0..h_L leave the cache (bf16, one [N, W] tensor per layer, written in place: the next
+// layer's tiles read them there), for the backward. The backward walks the same blocks from y down to x: output
 // layer, then per layer the mask, the bias sum, the weight gradients (gᵀ h and gᵀ x, accumulated in float32
 // per thread over its blocks) and the input gradients (g W, and g A into the block's x gradient), all in cache.
 //
@@ -149,6 +150,44 @@ inline void gemm(const uint16_t* A, int lda, const uint16_t* B, int K, int N, fl
         _tile_dpbf16ps(1, 4, 7);
         _tile_dpbf16ps(2, 5, 6);
         _tile_dpbf16ps(3, 5, 7);
+      }
+      _tile_stored(0, c, ldc * 4);
+      _tile_stored(1, c + 16, ldc * 4);
+      _tile_stored(2, c + 16 * ldc, ldc * 4);
+      _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
+    }
+  }
+}
+
+// Forward product with its bias: C[M][N] = C0 + A1 B1 (+ A2 B2 where A2 is given), A row-major bf16, B packed
+// [K/2][N][2] bf16, C0 [16][N] float32 (the bias, one row repeated 16 times: each 16-row C tile starts from it),
+// C float32 (ldc). M, N, K multiples of 32. Both products accumulate in the same tiles (no store and reload between).
+inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, const uint16_t* A2, int lda2,
+                      const uint16_t* B2, int K2, const float* C0, int N, float* C, int ldc, int M) {
+  for (int m = 0; m < M; m += 32) {
+    for (int n = 0; n < N; n += 32) {
+      float* c = C + static_cast<size_t>(m) * ldc + n;
+      _tile_loadd(0, C0 + n, N * 4);
+      _tile_loadd(1, C0 + n + 16, N * 4);
+      _tile_loadd(2, C0 + n, N * 4);
+      _tile_loadd(3, C0 + n + 16, N * 4);
+      for (int pass = 0; pass < 2; ++pass) {
+        const uint16_t* A = pass == 0 ? A1 : A2;
+        if (A == nullptr) continue;
+        const int lda = pass == 0 ? lda1 : lda2, K = pass == 0 ? K1 : K2;
+        const uint16_t* B = pass == 0 ? B1 : B2;
+        for (int k = 0; k < K; k += 32) {
+          const uint16_t* a = A + static_cast<size_t>(m) * lda + k;
+          const uint16_t* b = B + static_cast<size_t>(k / 2) * N * 2 + n * 2;
+          _tile_loadd(4, a, lda * 2);
+          _tile_loadd(5, a + 16 * lda, lda * 2);
+          _tile_loadd(6, b, N * 4);
+          _tile_loadd(7, b + 32, N * 4);
+          _tile_dpbf16ps(0, 4, 6);
+          _tile_dpbf16ps(1, 4, 7);
+          _tile_dpbf16ps(2, 5, 6);
+          _tile_dpbf16ps(3, 5, 7);
+        }
       }
       _tile_stored(0, c, ldc * 4);
       _tile_stored(1, c + 16, ldc * 4);
@@ -319,6 +358,9 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
   TORCH_CHECK(b_out.scalar_type() == at::kFloat && b_out.is_contiguous() && b_out.numel() == O, fn,
               ": b_out must be a contiguous float32 [O]");
   const float* bp = bias.data_ptr<float>();
+  std::vector<float> bias16(static_cast<size_t>(L + 1) * 16 * W);  // [L+1][16][W]: each layer's bias in 16 rows
+  for (int l = 0; l <= L; ++l)
+    for (int r = 0; r < 16; ++r) std::memcpy(bias16.data() + (l * 16 + r) * W, bp + l * W, sizeof(float) * W);
   const float* wo = w_out.data_ptr<float>();
   const float* bo = b_out.data_ptr<float>();
   std::vector<at::Tensor> H(L + 1);
@@ -327,6 +369,8 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
     H[l] = at::empty({N, W}, x.options().dtype(at::kBFloat16));
     Hp[l] = bf16_ptr_mut(H[l]);
   }
+  bool h_aligned = true;  // every H row starts on a 64-byte line (W a multiple of 32): streaming stores apply
+  for (int l = 0; l <= L; ++l) h_aligned = h_aligned && reinterpret_cast<uintptr_t>(Hp[l]) % 64 == 0;
   at::Tensor y = at::empty({N, O}, x.options().dtype(at::kFloat));
   float* yp = y.data_ptr<float>();
   const RowSource xs(x);
@@ -345,17 +389,27 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
       const int nr = static_cast<int>(std::min<int64_t>(rows, N - r0));
       load_x_block(xs, r0, nr, rows, K, Kp, xb);
       for (int l = 0; l <= L; ++l) {
-        if (l > 0) gemm(hb, W, wp[l - 1], W, W, cf, W, rows, false);
-        if (reads_x[l] >= 0) gemm(xb, Kp, ap[reads_x[l]], Kp, W, cf, W, rows, l > 0);
-        const float* bl = bp + static_cast<int64_t>(l) * W;
-        for (int r = 0; r < rows; ++r) {
+        const int s_x = reads_x[l];
+        gemm_bias(l > 0 ? static_cast<const uint16_t*>(hb) : nullptr, W, l > 0 ? wp[l - 1] : nullptr, W,
+                  s_x >= 0 ? static_cast<const uint16_t*>(xb) : nullptr, Kp, s_x >= 0 ? ap[s_x] : nullptr, Kp,
+                  bias16.data() + static_cast<size_t>(l) * 16 * W, W, cf, W, rows);
+        // ReLU, rounded to bf16: into hb (the next layer's input, in cache) and streamed into H (not read again
+        // before the backward: non-temporal stores skip reading the destination's lines first)
+        uint16_t* h_dst = Hp[l] + r0 * W;
+        for (int r = 0; r < rows; ++r)
           for (int o = 0; o < W; o += 32) {
-            const __m512 lo = _mm512_add_ps(load16(cf + r * W + o), load16(bl + o));
-            const __m512 hi = _mm512_add_ps(load16(cf + r * W + o + 16), load16(bl + o + 16));
-            store32_bf16(hb + r * W + o, _mm512_max_ps(lo, zero), _mm512_max_ps(hi, zero));
+            __m512bh v = _mm512_cvtne2ps_pbh(_mm512_max_ps(load16(cf + r * W + o + 16), zero),
+                                             _mm512_max_ps(load16(cf + r * W + o), zero));
+            const __m512i vi = reinterpret_cast<__m512i&>(v);
+            _mm512_storeu_si512(reinterpret_cast<void*>(hb + r * W + o), vi);
+            if (r < nr) {
+              if (h_aligned) {
+                _mm512_stream_si512(reinterpret_cast<__m512i*>(h_dst + r * W + o), vi);
+              } else {
+                _mm512_storeu_si512(reinterpret_cast<void*>(h_dst + r * W + o), vi);
+              }
+            }
           }
-          if (r < nr) std::memcpy(Hp[l] + (r0 + r) * W, hb + r * W, W * 2);
-        }
       }
       for (int r = 0; r < nr; ++r) {  // y = h_L W_outᵀ + b_out, float32 on the bf16 h_L
         for (int o = 0; o < O; ++o) {
@@ -365,6 +419,7 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
         }
       }
     }
+    _mm_sfence();  // the streamed H visible before the region ends
     _tile_release();
   }
   return {y, H};
