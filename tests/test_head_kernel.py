@@ -13,12 +13,14 @@ import copy
 
 import pytest
 import torch
+import torch.nn.functional as F
 
 from src.fields import CNNTriplaneBackbone, OffsetFlow, SplatFieldNetwork
 from src.fields.head_kernel import (
     BLOCK_ROWS,
     cpu_has_amx,
     head_mlp,
+    head_packs,
     heads_mlp,
     pack_in,
     pack_out,
@@ -153,6 +155,26 @@ def test_weight_packs_follow_their_layouts():
     p_in, p_out = pack_in(w), pack_out(w)
     assert p_in.shape == (16, 64, 2) and p_out.shape == (32, 32, 2)
     assert torch.equal(p_in[5, 7, 1], wb[7, 2 * 5 + 1]) and torch.equal(p_out[5, 7, 1], wb[2 * 5 + 1, 7])
+
+
+@amx
+@pytest.mark.parametrize("over_input", [True, False])
+def test_compiled_packs_equal_the_torch_packs(over_input):
+    """``head_packs`` (one compiled call per head) equals ``pack_in`` / ``pack_out`` of the stacked weights with the
+    input weights zero-padded to 32 columns, bit for bit, from strided views (a column slice, a transpose)."""
+    g = torch.Generator().manual_seed(5)
+    big = torch.randn(64, 200, generator=g)
+    a = [big[:, 10:85], torch.randn(75, 64, generator=g).t(), torch.randn(64, 75, generator=g)]  # [W, K] views
+    hidden = [big[:, 100:164], torch.randn(64, 64, generator=g)]
+    a[2][0, :3] = torch.tensor([1 + 2 ** -8, 1 + 3 * 2 ** -8, -(1 + 3 * 2 ** -8)])  # ties: round to the even bf16
+    pa, ph = head_packs(a, hidden, over_input)
+    pack = pack_in if over_input else pack_out
+    a_ref = pack(F.pad(torch.stack(a), (0, 96 - 75)))  # [S, ...] with K 75 -> Kp 96
+    assert [p.shape for p in pa] == [a_ref.shape[1:]] * 3 and all(p.dtype == torch.bfloat16 for p in pa + ph)
+    assert all(torch.equal(p, r) for p, r in zip(pa, a_ref.unbind(0), strict=True))
+    assert all(torch.equal(p, r) for p, r in zip(ph, pack(torch.stack(hidden)).unbind(0), strict=True))
+    with pytest.raises(RuntimeError, match=r"hidden weight 0 must be a float32 CPU \[64, 64\]"):
+        head_packs(a, [hidden[0][:, :32]], over_input)
 
 
 def test_head_mlp_names_a_wrong_layer_list():

@@ -101,6 +101,14 @@ def _padded(w: Tensor) -> Tensor:
     return F.pad(w.detach(), (0, -w.shape[-1] % 32))
 
 
+def head_packs(a: Sequence[Tensor], hidden: Sequence[Tensor], over_input: bool) -> tuple[list[Tensor], list[Tensor]]:
+    """A head's bf16 weight packs for the kernel, one compiled call: ``a`` [W, K] float32 input weights (zero-padded
+    to Kp), ``hidden`` [W, W] float32 (any strides). ``over_input``: the forward's packs, ``pack_in`` of each (inputs
+    [Kp/2, W, 2], hidden [W/2, W, 2]); else the backward's, ``pack_out`` ([W/2, Kp, 2], [W/2, W, 2])."""
+    pa, ph = _ops().head_pack(list(a), list(hidden), over_input)
+    return list(pa.unbind(0)), list(ph.unbind(0))
+
+
 def _ops():
     """The kernel's ops (``torch.ops.splatfields_cpu``), built and loaded once per process (the compiled-extension
     builder of the CPU rasterizer, ``src/rasterizer/_build.py``, builds it too)."""
@@ -125,14 +133,13 @@ class _Heads(torch.autograd.Function):
             w_out, b_out = p[-2], p[-1]
             bias_all = torch.stack([b.detach().float() for b in bias])  # [L + 1, W]
             w_out32 = w_out.detach().float().contiguous()  # [O, W]
-            a_pad = _padded(torch.stack([w.detach() for w in a]))  # [S, W, Kp]
-            width = a_pad.shape[1]
-            w_h = torch.stack([w.detach() for w in hidden]) if hidden else a_pad.new_zeros(0, width, width)  # [L, W, W]
-            y, H = _ops().head_forward(x.detach(), list(pack_in(a_pad).unbind(0)), list(pack_in(w_h).unbind(0)),
-                                       bias_all, list(reads_x), w_out32, b_out.detach().float().contiguous(), rows[0])
+            a32, h32 = [w.detach().float() for w in a], [w.detach().float() for w in hidden]  # [W, K] / [W, W] each
+            a_packs, h_packs = head_packs(a32, h32, over_input=True)
+            y, H = _ops().head_forward(x.detach(), a_packs, h_packs, bias_all, list(reads_x), w_out32,
+                                       b_out.detach().float().contiguous(), rows[0])
             ys.append(y)
             spans.append((len(saved), len(p)))
-            saved += [w_out32, *H, a_pad, w_h]  # the weights stacked: [S, W, Kp] and [L, W, W]
+            saved += [w_out32, *H, *a32, *h32]  # the weights as they came (views: packed again for the backward)
         ctx.save_for_backward(*saved)
         ctx.meta = (metas, spans, [p.dtype for p in params])
         return tuple(ys)
@@ -142,16 +149,16 @@ class _Heads(torch.autograd.Function):
         metas, spans, dtypes = ctx.meta
         x, *_ = saved = ctx.saved_tensors
         g_x, grads = None, []
-        for (_, n_h, reads_x, rows), (start, n_params), g_y in zip(metas, spans, g_ys, strict=True):
+        for (n_a, n_h, reads_x, rows), (start, n_params), g_y in zip(metas, spans, g_ys, strict=True):
             if g_y is None:  # this head's output is unused: no gradient from it
                 grads += [None] * n_params
                 continue
             w_out32 = saved[start]
             H = saved[start + 1: start + n_h + 2]
-            a_pad, w_h = saved[start + n_h + 2], saved[start + n_h + 3]
+            weights = saved[start + n_h + 2: start + 2 * n_h + 2 + n_a]  # a [W, K] x S, then hidden [W, W] x L
+            a_packs, h_packs = head_packs(weights[:n_a], weights[n_a:], over_input=False)
             g_x, g_a, g_w, g_b, g_wo, g_bo = _ops().head_backward(
-                g_y.float().contiguous(), x, list(H), list(pack_out(a_pad).unbind(0)), list(pack_out(w_h).unbind(0)),
-                list(reads_x), w_out32, rows[1], g_x)
+                g_y.float().contiguous(), x, list(H), a_packs, h_packs, list(reads_x), w_out32, rows[1], g_x)
             k = x.shape[1]
             grads += [*g_a[:, :, :k].unbind(0), *g_w.unbind(0), *g_b.unbind(0), g_wo, g_bo]
         grads = [g if g is None else g.to(dt) for g, dt in zip(grads, dtypes, strict=True)]

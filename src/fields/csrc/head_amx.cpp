@@ -588,10 +588,67 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {g_x, g_a, g_w, g_b, g_wo, g_bo};
 }
 
+// float32 -> bfloat16 bits, round to nearest even (as torch's conversion; NaN -> 0x7fc0)
+inline uint16_t to_bf16(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof(u));
+  return v != v ? static_cast<uint16_t>(0x7fc0) : static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+// One weight w [out, in] (float32, any strides) as a bf16 pack of [rows, cols] = [out, cols >= in] (the columns
+// past `in` zero): over_input, "VNNI over its input" [cols/2][out][2] (p[k][o][j] = w[o][2k+j]); else "VNNI over
+// its output" [out/2][cols][2] (p[k][i][j] = w[2k+j][i]).
+void pack_weight(const at::Tensor& w, int cols, bool over_input, uint16_t* p) {
+  const int out = static_cast<int>(w.size(0)), in = static_cast<int>(w.size(1));
+  const float* wp = w.data_ptr<float>();
+  const int64_t so = w.stride(0), si = w.stride(1);
+  auto elem = [&](int o, int i) { return i < in ? to_bf16(wp[o * so + i * si]) : static_cast<uint16_t>(0); };
+  if (over_input) {
+    for (int k = 0; k < cols / 2; ++k)
+      for (int o = 0; o < out; ++o) {
+        p[(k * out + o) * 2] = elem(o, 2 * k);
+        p[(k * out + o) * 2 + 1] = elem(o, 2 * k + 1);
+      }
+  } else {
+    for (int k = 0; k < out / 2; ++k)
+      for (int i = 0; i < cols; ++i) {
+        p[(k * cols + i) * 2] = elem(2 * k, i);
+        p[(k * cols + i) * 2 + 1] = elem(2 * k + 1, i);
+      }
+  }
+}
+
+// A head's weight packs for the kernel, built in one call: a[s] [W, K] the input weights (zero-padded to Kp, K
+// rounded up to 32) and hidden[l] [W, W], float32 with any strides. over_input: the forward's packs ([S, Kp/2, W, 2]
+// and [L, W/2, W, 2]); else the backward's ([S, W/2, Kp, 2] and [L, W/2, W, 2]). Equals pack_in / pack_out of
+// src/fields/head_kernel.py on the stacked, padded weights.
+std::tuple<at::Tensor, at::Tensor> head_pack(std::vector<at::Tensor> a, std::vector<at::Tensor> hidden, bool over_input) {
+  const char* fn = "head_pack";
+  TORCH_CHECK(!a.empty(), fn, ": needs at least one input weight");
+  const int W = static_cast<int>(a[0].size(0)), K = static_cast<int>(a[0].size(1)), Kp = (K + 31) / 32 * 32;
+  TORCH_CHECK(W % 2 == 0, fn, ": the width ", W, " must be even");
+  auto check = [&](const at::Tensor& w, int in, const char* what, size_t i) {
+    TORCH_CHECK(w.device().is_cpu() && w.scalar_type() == at::kFloat && w.dim() == 2 && w.size(0) == W && w.size(1) == in,
+                fn, ": ", what, " ", i, " must be a float32 CPU [", W, ", ", in, "], got ", w.sizes(), " ", w.scalar_type());
+  };
+  for (size_t i = 0; i < a.size(); ++i) check(a[i], K, "input weight", i);
+  for (size_t i = 0; i < hidden.size(); ++i) check(hidden[i], W, "hidden weight", i);
+  const auto opts = a[0].options().dtype(at::kBFloat16);
+  const int64_t S = static_cast<int64_t>(a.size()), L = static_cast<int64_t>(hidden.size());
+  at::Tensor pa = over_input ? at::empty({S, Kp / 2, W, 2}, opts) : at::empty({S, W / 2, Kp, 2}, opts);
+  at::Tensor ph = at::empty({L, W / 2, W, 2}, opts);
+  uint16_t* pap = bf16_ptr_mut(pa);
+  uint16_t* php = bf16_ptr_mut(ph);
+  for (int64_t i = 0; i < S; ++i) pack_weight(a[i], Kp, over_input, pap + i * Kp * W);
+  for (int64_t i = 0; i < L; ++i) pack_weight(hidden[i], W, over_input, php + i * W * W);
+  return {pa, ph};
+}
+
 }  // namespace
 
 TORCH_LIBRARY_FRAGMENT(splatfields_cpu, m) {
   m.def("head_forward", &head_forward);
   m.def("head_backward", &head_backward);
   m.def("head_available", &head_available);
+  m.def("head_pack", &head_pack);
 }
