@@ -81,3 +81,15 @@ def test_missing_or_bad_frame_raises():
         layer(x, frame_id=4)
     with pytest.raises(ValueError):
         ResFieldLinear(5, 3, rank=2, n_frames=4, mode="interpolation")(x, frame_id=1)
+
+
+def test_weight_at_keeps_the_masters_dtype_under_autocast():
+    """Under CPU bf16 autocast (the fused heads' region) the residual is still formed in float32: the same weight
+    as without autocast, bit for bit (autocast would round the basis and the residual to bf16)."""
+    layer = ResFieldLinear(16, 8, rank=4, n_frames=3)
+    plain = layer.weight_at(frame_id=2)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under = layer.weight_at(frame_id=2)
+    assert under.dtype == torch.float32 and torch.equal(under, plain)
+    under.sum().backward()
+    assert layer.matrices.grad.dtype == torch.float32 and layer.coefficients.grad.abs().sum() > 0

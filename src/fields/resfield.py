@@ -90,11 +90,14 @@ class ResFieldLinear(nn.Linear):
         return (1.0 - alpha) * self.coefficients[k0] + alpha * self.coefficients[k0 + 1]
 
     def weight_at(self, frame_id: int | Tensor | None = None, time: float | Tensor | None = None) -> Tensor:
-        """The [out, in] weight W_t of one frame/time (``weight`` itself if not time-dependent)."""
+        """The [out, in] weight W_t of one frame/time (``weight`` itself if not time-dependent), in the masters'
+        dtype also under autocast: the residual is a matrix-vector product that reads the whole basis once, where
+        autocast would first copy the basis to bf16 (and its gradient back) on every call."""
         if not self.is_time_dependent:
             return self.weight
         c = self._coefficient_row(frame_id, time)  # [R]
-        delta = (c @ self.matrices).view(self.out_features, self.in_features)  # [out, in]
+        with torch.autocast(self.matrices.device.type, enabled=False):
+            delta = (c @ self.matrices).view(self.out_features, self.in_features)  # [out, in]
         return self.weight + delta
 
     def forward(
