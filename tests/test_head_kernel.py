@@ -72,7 +72,8 @@ def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
     (75, 128, 6, 4, 3, torch.bfloat16, (256, 32)),   # other block sizes
     (75, 64, 3, None, 4, torch.float32, BLOCK_ROWS),  # a 64-wide head, float32 input row
     (40, 32, 0, None, 1, torch.float32, (64, 64)),    # input and output layers only
-    (96, 64, 2, 2, 33, torch.float32, BLOCK_ROWS),    # an input row of whole tiles, a skip into the last hidden layer
+    (96, 64, 2, 2, 33, torch.float32, BLOCK_ROWS),    # whole input tiles, a skip into the last hidden layer, 33 outputs
+    (75, 128, 6, 4, 128, torch.bfloat16, BLOCK_ROWS),  # a flow trunk: 128 features out (a tiled output layer)
 ])
 def test_kernel_as_accurate_as_the_onednn_bf16_reference(k, width, n_hidden, skip_at, n_out, x_dtype, rows):
     problem = _problem(1000 + 13, k, width, n_hidden, skip_at, n_out, x_dtype)  # N not a multiple of any block

@@ -109,11 +109,11 @@ def input_layer(heads: Sequence[HeadInput], x: Tensor, t_enc: Tensor | None) -> 
 
 def kernel_fits(mlp: FieldMLP) -> bool:
     """True when ``mlp`` can run as one ``head_mlp`` kernel: ReLU, width 32k <= 256, no skip into the output
-    linear, a narrow output (<= 64), no output quirk. (A head whose last layer reads an extra input, the
-    view-dependent colour head, cannot either: the caller checks that.)"""
+    linear, at most 256 outputs (a head's few values, or a flow trunk's features), no output quirk. (A head whose
+    last layer reads an extra input, the view-dependent colour head, cannot either: the caller checks that.)"""
     last = mlp.n_layers - 1
     return (mlp.activation == "relu" and mlp.n_layers >= 2 and mlp.width % 32 == 0 and mlp.width <= 256
-            and last not in mlp.skips and mlp.out_dim <= 64 and not mlp.output_act_quirk)
+            and last not in mlp.skips and mlp.out_dim <= 256 and not mlp.output_act_quirk)
 
 
 def kernel_layers(head: HeadInput, weights: list[Tensor], t_enc: Tensor | None) -> HeadLayers:

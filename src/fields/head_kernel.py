@@ -1,7 +1,7 @@
 """A field head's layers as one AMX-BF16 kernel (``csrc/head_amx.cpp``).
 
 A head of the fused path reads its input row ``x = [f, PE(x)]`` [N, K] at its first linear and at each
-skip linear, runs equal-width ReLU layers and ends in a narrow linear output:
+skip linear, runs equal-width ReLU layers and ends in a linear output:
 
     h_0 = ReLU(x A_0ᵀ + b_0),   h_l = ReLU(h_{l-1} W_lᵀ [+ x A_sᵀ at a skip layer] + b_l)   (l = 1..L),
     y   = h_L W_outᵀ + b_out                                                               [N, O] float32.
@@ -10,8 +10,10 @@ skip linear, runs equal-width ReLU layers and ends in a narrow linear output:
 function through oneDNN, one layer at a time (the slow reference; under autocast its products run in
 bf16 as the kernel's do), which ``tests/test_head_kernel.py`` compares with the kernel, values and
 gradients, both against float64 autograd. The kernel's products round their operands to bf16 and
-accumulate in float32, as oneDNN's do under CPU bf16 autocast; the output layer runs in float32 on the
-bf16 h_L, as the fused path's float32 output layers do. Every gradient comes back in its input's dtype.
+accumulate in float32, as oneDNN's do under CPU bf16 autocast; a narrow output layer (fewer than
+``TILE_OUTPUT`` values: a head's colour, opacity, scale or rotation) runs in float32 on the bf16 h_L, as the
+fused path's float32 output layers do, a wide one (a flow trunk's features) as one more bf16 product. Every
+gradient comes back in its input's dtype.
 ``heads_mlp(x, heads)`` runs several heads that read the same row as one autograd function: the kernel's
 backward adds each head's row gradient into one tensor, a block at a time in cache.
 
@@ -35,6 +37,8 @@ AMX_FLAGS = ("amx_bf16", "amx_tile", "avx512_bf16")
 # float32 weight-gradient tiles less often (measured 0.80x the backward's time at 128 against 32, one process)
 # and the forward's products gain nothing from them (32: 0.95x the forward's time at 128)
 BLOCK_ROWS = (32, 128)
+# outputs from which the kernel's output layer is a bf16 tile product (csrc kTileOutput)
+TILE_OUTPUT = 32
 
 log = logging.getLogger(__name__)
 
@@ -195,6 +199,8 @@ def _reference(x: Tensor, a: Sequence[Tensor], hidden: Sequence[Tensor], bias: S
         if reads_x[l] >= 0:
             z = z + F.linear(x, a[reads_x[l]])
         h = torch.relu(z)
+    if w_out.shape[0] >= TILE_OUTPUT:  # a wide output: one more product (bf16 under autocast), in float32
+        return F.linear(h, w_out, b_out).to(torch.promote_types(w_out.dtype, torch.float32))
     with torch.autocast(x.device.type, enabled=False):  # in the masters' dtype (float32; float64 in checks)
         return F.linear(h.to(w_out.dtype), w_out, b_out)
 

@@ -1,7 +1,8 @@
 // A field head's layers as ONE kernel on AMX-BF16 tiles (src/fields/head_kernel.py).
 //
 // A head reads its input x = [f, PE(x)] [N, K] at its first linear and at each skip linear, runs equal-width
-// ReLU layers and ends in a narrow linear output (3 colours, 1 opacity, 3 scales, 4 quaternion terms):
+// ReLU layers and ends in a linear output (a head's 3 colours, 1 opacity, 3 scales or 4 quaternion terms; a flow
+// trunk's features):
 //
 //     h_0 = ReLU(x A_0ᵀ + b_0),   h_l = ReLU(h_{l-1} W_lᵀ [+ x A_lᵀ at a skip layer] + b_l)   (l = 1..L),
 //     y   = h_L W_outᵀ + b_out                                                              [N, O] float32.
@@ -11,9 +12,10 @@
 // copy of h_L, and the backward runs separate passes for masks, bias sums and products. Here a block of
 // splats (block_rows: 32..256) goes through ALL layers while it sits in cache: per layer 16-row AMX tiles against the packed
 // weights, starting from the bias (a skip layer's two products into the same tiles), ReLU applied on the float32
-// tile result, rounded to bf16 as the next layer's input; the output layer in float32 FMAs on the bf16 h_L. Only
-// the activations h_0..h_L leave the cache (bf16, one [N, W] tensor per layer, written in place: the next
-// layer's tiles read them there), for the backward. The backward walks the same blocks from y down to x: output
+// tile result, rounded to bf16 as the next layer's input; a narrow output layer (O < 32) in float32 FMAs on the
+// bf16 h_L, a wide one as one more tile product (its width padded to 32). Only the activations h_0..h_L leave the
+// cache (bf16, one [N, W] tensor per layer, streamed out with non-temporal stores), for the backward. The
+// backward walks the same blocks from y down to x: output
 // layer, then per layer the mask, the bias sum, the weight gradients (gᵀ h and gᵀ x, accumulated in float32
 // per thread over its blocks) and the input gradients (g W, and g A into the block's x gradient), all in cache.
 //
@@ -197,6 +199,36 @@ inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, 
   }
 }
 
+// float32 -> bfloat16 bits, round to nearest even (as torch's conversion; NaN -> 0x7fc0)
+inline uint16_t to_bf16(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof(u));
+  return v != v ? static_cast<uint16_t>(0x7fc0) : static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
+}
+
+// Outputs from which the output layer runs as a tile product, its width padded to Ot (a multiple of 32; bf16
+// operands, float32 accumulation: its weight rounded to bf16 as the hidden layers' are); below, float32 dot
+// products on the bf16 h_L (a head's few values).
+constexpr int kTileOutput = 32;
+inline int tile_outputs(int O) { return O >= kTileOutput ? (O + 31) / 32 * 32 : O; }
+
+// src [rows, cols] float32 (row stride ld) -> dst [cols, rows] bf16: 16 x 16 blocks, 32 rows at a time.
+// rows a multiple of 32, cols of 16.
+void transpose_bf16(const float* src, int ld, int rows, int cols, uint16_t* dst) {
+  for (int ob = 0; ob < cols; ob += 16) {
+    for (int rp = 0; rp < rows; rp += 32) {
+      __m512 lo[16], hi[16];
+      for (int r = 0; r < 16; ++r) {
+        lo[r] = _mm512_loadu_ps(src + (rp + r) * ld + ob);
+        hi[r] = _mm512_loadu_ps(src + (rp + r + 16) * ld + ob);
+      }
+      transpose16x16(lo);
+      transpose16x16(hi);
+      for (int o = 0; o < 16; ++o) store32_bf16(dst + (ob + o) * rows + rp, lo[o], hi[o]);
+    }
+  }
+}
+
 // Row r of a [N, C] float32 or bf16 tensor (row stride in elements).
 struct RowSource {
   const float* f32 = nullptr;
@@ -311,7 +343,7 @@ Shape check_head(const at::Tensor& x, int64_t n_x, int64_t L, const std::vector<
   s.Kp = (s.K + 31) / 32 * 32;
   TORCH_CHECK(s.W % 32 == 0 && s.W <= 256, fn, ": width ", s.W, " must be a multiple of 32, at most 256");
   TORCH_CHECK(s.K >= 1 && s.Kp <= 256, fn, ": input width ", s.K, " must be 1..256");
-  TORCH_CHECK(s.O >= 1 && s.O <= 64, fn, ": output width ", s.O, " must be 1..64");
+  TORCH_CHECK(s.O >= 1 && s.O <= 256, fn, ": output width ", s.O, " must be 1..256");
   TORCH_CHECK(static_cast<int64_t>(reads_x.size()) == L + 1 && reads_x[0] == 0, fn,
               ": reads_x must name an input weight for each of the L + 1 layers, the first layer's being 0");
   for (int64_t l = 0; l <= L; ++l)
@@ -363,6 +395,18 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
     for (int r = 0; r < 16; ++r) std::memcpy(bias16.data() + (l * 16 + r) * W, bp + l * W, sizeof(float) * W);
   const float* wo = w_out.data_ptr<float>();
   const float* bo = b_out.data_ptr<float>();
+  const int Ot = tile_outputs(O);
+  const bool tile_out = O >= kTileOutput;
+  std::vector<uint16_t> wo_pack;  // a tiled output layer's weight, VNNI over its input [W/2][Ot][2] (rows >= O zero)
+  std::vector<float> bias16_out;  // its bias in 16 rows [16][Ot]
+  if (tile_out) {
+    wo_pack.assign(static_cast<size_t>(W) * Ot, 0);
+    for (int k = 0; k < W / 2; ++k)
+      for (int o = 0; o < O; ++o)
+        for (int j = 0; j < 2; ++j) wo_pack[(static_cast<size_t>(k) * Ot + o) * 2 + j] = to_bf16(wo[o * W + 2 * k + j]);
+    bias16_out.assign(static_cast<size_t>(16) * Ot, 0.0f);
+    for (int r = 0; r < 16; ++r) std::memcpy(bias16_out.data() + r * Ot, bo, sizeof(float) * O);
+  }
   std::vector<at::Tensor> H(L + 1);
   std::vector<uint16_t*> Hp(L + 1);
   for (int l = 0; l <= L; ++l) {
@@ -411,11 +455,16 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
             }
           }
       }
-      for (int r = 0; r < nr; ++r) {  // y = h_L W_outᵀ + b_out, float32 on the bf16 h_L
-        for (int o = 0; o < O; ++o) {
-          __m512 acc = zero;
-          for (int i = 0; i < W; i += 16) acc = _mm512_fmadd_ps(load16(hb + r * W + i), load16(wo + o * W + i), acc);
-          yp[(r0 + r) * O + o] = hsum(acc) + bo[o];
+      if (tile_out) {  // y = h_L W_outᵀ + b_out as a tile product
+        gemm_bias(hb, W, wo_pack.data(), W, nullptr, 0, nullptr, 0, bias16_out.data(), Ot, cf, Ot, rows);
+        for (int r = 0; r < nr; ++r) std::memcpy(yp + (r0 + r) * O, cf + r * Ot, sizeof(float) * O);
+      } else {  // y = h_L W_outᵀ + b_out, float32 on the bf16 h_L
+        for (int r = 0; r < nr; ++r) {
+          for (int o = 0; o < O; ++o) {
+            __m512 acc = zero;
+            for (int i = 0; i < W; i += 16) acc = _mm512_fmadd_ps(load16(hb + r * W + i), load16(wo + o * W + i), acc);
+            yp[(r0 + r) * O + o] = hsum(acc) + bo[o];
+          }
         }
       }
     }
@@ -469,9 +518,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
                 "] tensor in x's dtype");
   at::Tensor g_x = add ? *g_x_into : at::empty({N, K}, x.options().memory_format(at::MemoryFormat::Contiguous));
   const int n_threads = std::max(1, at::get_num_threads());  // torch's thread count, as in the forward
-  // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [O, W], g_b_out [O]
+  const int Ot = tile_outputs(O);
+  const bool tile_out = O >= kTileOutput;
+  std::vector<uint16_t> wo_pack;  // a tiled output layer's weight, VNNI over its output [Ot/2][W][2] (rows >= O zero)
+  if (tile_out) {
+    wo_pack.assign(static_cast<size_t>(Ot) * W, 0);
+    for (int o = 0; o < O; ++o)
+      for (int i = 0; i < W; ++i) wo_pack[(static_cast<size_t>(o / 2) * W + i) * 2 + o % 2] = to_bf16(wo[o * W + i]);
+  }
+  // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [Ot, W], g_b_out [O]
   const int64_t n_a = static_cast<int64_t>(S) * W * Kp, n_w = static_cast<int64_t>(L) * W * W;
-  const int64_t n_b = static_cast<int64_t>(L + 1) * W, n_wo = static_cast<int64_t>(O) * W;
+  const int64_t n_b = static_cast<int64_t>(L + 1) * W, n_wo = static_cast<int64_t>(Ot) * W;
   const int64_t per_thread = n_a + n_w + n_b + n_wo + O;
   std::vector<float> acc(static_cast<size_t>(n_threads) * per_thread, 0.0f);
   const RowSource xs(x);
@@ -492,26 +549,42 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
     Scratch<uint16_t> xb(rows * 256);     // the block's x [rows, Kp] bf16
     Scratch<uint16_t> xv(rows * 256);     // x VNNI over rows [rows / 2, Kp, 2]
     Scratch<float> gx(rows * 256);        // the block's x gradient [rows, Kp] float32
+    Scratch<float> gyf(rows * 256);       // a tiled output layer's g_y [rows, Ot] float32 (zero-padded)
+    Scratch<uint16_t> gyb(rows * 256);    // ... bf16 row-major [rows, Ot]
+    Scratch<uint16_t> gyt(256 * rows);    // ... bf16 transposed [Ot, rows]
 #pragma omp for schedule(static)
     for (int64_t b = 0; b < n_blocks; ++b) {
       const int64_t r0 = b * rows;
       const int nr = static_cast<int>(std::min<int64_t>(rows, N - r0));
       const uint16_t* HL = Hp[L] + r0 * W;
       // output layer: g = g_y W_out (rows >= nr zero), g_W_out += g_yᵀ h_L, g_b_out += Σ g_y
-      for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < W; i += 16) {
-          __m512 v = zero;
-          if (r < nr)
-            for (int o = 0; o < O; ++o) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(wo + o * W + i), v);
-          _mm512_storeu_ps(g + r * W + i, v);
+      if (tile_out) {  // both products on tiles, g_y rounded to bf16
+        for (int r = 0; r < rows; ++r) {
+          for (int o = 0; o < Ot; ++o) gyf[r * Ot + o] = r < nr && o < O ? gyp[(r0 + r) * O + o] : 0.0f;
+          for (int o = 0; o < Ot; o += 32) store32_bf16(gyb + r * Ot + o, load16(gyf + r * Ot + o), load16(gyf + r * Ot + o + 16));
+        }
+        transpose_bf16(gyf, Ot, rows, Ot, gyt);
+        vnni_rows(HL, W, nr, rows, W, hv);
+        gemm(gyt, rows, hv, rows, W, gwo_t, W, Ot, true);              // g_W_out += g_yᵀ h_L
+        gemm(gyb, Ot, wo_pack.data(), Ot, W, g, W, rows, false);       // g = g_y W_out
+      } else {
+        for (int r = 0; r < rows; ++r) {
+          for (int i = 0; i < W; i += 16) {
+            __m512 v = zero;
+            if (r < nr)
+              for (int o = 0; o < O; ++o) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(wo + o * W + i), v);
+            _mm512_storeu_ps(g + r * W + i, v);
+          }
+        }
+        for (int o = 0; o < O; ++o) {
+          for (int i = 0; i < W; i += 16) {
+            __m512 v = load16(gwo_t + o * W + i);
+            for (int r = 0; r < nr; ++r) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(HL + r * W + i), v);
+            _mm512_storeu_ps(gwo_t + o * W + i, v);
+          }
         }
       }
       for (int o = 0; o < O; ++o) {
-        for (int i = 0; i < W; i += 16) {
-          __m512 v = load16(gwo_t + o * W + i);
-          for (int r = 0; r < nr; ++r) v = _mm512_fmadd_ps(_mm512_set1_ps(gyp[(r0 + r) * O + o]), load16(HL + r * W + i), v);
-          _mm512_storeu_ps(gwo_t + o * W + i, v);
-        }
         float sb = 0.0f;
         for (int r = 0; r < nr; ++r) sb += gyp[(r0 + r) * O + o];
         gbo_t[o] += sb;
@@ -541,19 +614,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
           for (int r = 0; r < nr; ++r) v = _mm512_add_ps(v, load16(g + r * W + o));
           _mm512_storeu_ps(gb + o, v);
         }
-        // transpose the masked gradient to [W, rows], bf16 (16 x 16 float32 blocks, 32 rows at a time)
-        for (int ob = 0; ob < W; ob += 16) {
-          for (int rp = 0; rp < rows; rp += 32) {
-            __m512 lo[16], hi[16];
-            for (int r = 0; r < 16; ++r) {
-              lo[r] = load16(g + (rp + r) * W + ob);
-              hi[r] = load16(g + (rp + r + 16) * W + ob);
-            }
-            transpose16x16(lo);
-            transpose16x16(hi);
-            for (int o = 0; o < 16; ++o) store32_bf16(gpt + (ob + o) * rows + rp, lo[o], hi[o]);
-          }
-        }
+        transpose_bf16(g, W, rows, W, gpt);  // the masked gradient as [W, rows] bf16
         if (reads_x[l] >= 0) {
           const int si = static_cast<int>(reads_x[l]);
           gemm(gpt, rows, xv, rows, Kp, ga_t + static_cast<int64_t>(si) * W * Kp, Kp, W, true);  // g_A += gᵀ x
@@ -583,16 +644,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   at::Tensor g_a = take(n_a, {S, W, Kp});
   at::Tensor g_w = take(n_w, {L, W, W});
   at::Tensor g_b = take(n_b, {L + 1, W});
-  at::Tensor g_wo = take(n_wo, {O, W});
+  at::Tensor g_wo = take(n_wo, {Ot, W}).narrow(0, 0, O);
   at::Tensor g_bo = take(O, {O});
   return {g_x, g_a, g_w, g_b, g_wo, g_bo};
-}
-
-// float32 -> bfloat16 bits, round to nearest even (as torch's conversion; NaN -> 0x7fc0)
-inline uint16_t to_bf16(float v) {
-  uint32_t u;
-  std::memcpy(&u, &v, sizeof(u));
-  return v != v ? static_cast<uint16_t>(0x7fc0) : static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
 }
 
 // One weight w [out, in] (float32, any strides) as a bf16 pack of [rows, cols] = [out, cols >= in] (the columns
