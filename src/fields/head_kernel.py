@@ -100,11 +100,6 @@ def pack_out(w: Tensor) -> Tensor:
     return w.detach().to(torch.bfloat16).reshape(*lead, o // 2, 2, i).transpose(-2, -1).contiguous()
 
 
-def _padded(w: Tensor) -> Tensor:
-    """[..., W, K] input weight(s) zero-padded to [..., W, Kp] (Kp: K rounded up to the tiles' 32 columns)."""
-    return F.pad(w.detach(), (0, -w.shape[-1] % 32))
-
-
 def head_packs(a: Sequence[Tensor], hidden: Sequence[Tensor], over_input: bool) -> tuple[list[Tensor], list[Tensor]]:
     """A head's bf16 weight packs for the kernel, one compiled call: ``a`` [W, K] float32 input weights (zero-padded
     to Kp), ``hidden`` [W, W] float32 (any strides). ``over_input``: the forward's packs, ``pack_in`` of each (inputs

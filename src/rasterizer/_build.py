@@ -66,6 +66,8 @@ FIELD_OPS = {
     "encoded_row": (FIELD_CSRC / "encoded_row.cpp",  # the heads' input row [f, PE(x)] (fields/encoded_row.py)
                     "The input rows are then concatenated by torch."),
 }
+# headers the field ops include (part of their build keys)
+FIELD_HEADERS = [FIELD_CSRC / "bf16_round.h"]
 # a field head's layers as one kernel on AMX-BF16 tiles (src/fields/head_kernel.py): built on AMX CPUs only
 HEAD_SOURCES = [FIELD_CSRC / "head_amx.cpp"]
 HEAD_CFLAGS = ["-O3", "-fopenmp", "-mavx512f", "-mavx512bw", "-mavx512vl", "-mavx512bf16", "-mamx-tile",
@@ -191,12 +193,14 @@ def load_extension(verbose: bool = False) -> Any:
         return _module
 
 
-def _load_once(name: str, sources: list[Path], flags: list[str], verbose: bool, fallback: str) -> Any:
-    """Build (if needed) and load the unit ``name`` once per process; returns the ops namespace."""
+def _load_once(name: str, sources: list[Path], flags: list[str], verbose: bool, fallback: str,
+               deps: list[Path] | None = None) -> Any:
+    """Build (if needed) and load the unit ``name`` once per process (``deps``: headers in its build key);
+    returns the ops namespace."""
     if name not in _units_loaded:
         with _lock:
             if name not in _units_loaded:
-                _load_unit(name, sources, [], flags, verbose, fallback)
+                _load_unit(name, sources, deps or [], flags, verbose, fallback)
                 _units_loaded.add(name)
     return getattr(torch.ops, OPS_NAMESPACE)
 
@@ -229,7 +233,7 @@ def load_field_op(name: str, verbose: bool = False) -> Any:
         RuntimeError: if the build fails (needs a C++17 compiler with OpenMP, and ``ninja``).
     """
     source, fallback = FIELD_OPS[name]
-    return _load_once(name, [source], projection_compile_flags(), verbose, fallback)
+    return _load_once(name, [source], projection_compile_flags(), verbose, fallback, FIELD_HEADERS)
 
 
 @functools.cache
@@ -257,4 +261,4 @@ def load_head_extension(verbose: bool = False) -> Any:
         RuntimeError: if the build fails (needs g++ >= 11 with OpenMP, and ``ninja``).
     """
     return _load_once("head_amx", HEAD_SOURCES, HEAD_CFLAGS, verbose,
-                      "Set model.network.head_kernel=off to use the oneDNN layers.")
+                      "Set model.network.head_kernel=off to use the oneDNN layers.", FIELD_HEADERS)

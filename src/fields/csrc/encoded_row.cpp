@@ -21,6 +21,8 @@
 #include <tuple>
 #include <type_traits>
 
+#include "bf16_round.h"
+
 namespace {
 
 constexpr int64_t kMaxDims = 8;  // inputs per point (3 for positions)
@@ -52,13 +54,6 @@ at::Tensor sin_cos(const at::Tensor& x, int64_t L) {
   return sc;
 }
 
-// float32 -> bfloat16 bits, round to nearest even (c10::BFloat16's rounding, NaN -> 0x7fc0), branch-free
-inline uint16_t to_bf16(float v) {
-  uint32_t u;
-  std::memcpy(&u, &v, sizeof(u));
-  const uint16_t r = static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
-  return v != v ? static_cast<uint16_t>(0x7fc0) : r;
-}
 inline void store_row(float* o, const float* v, int64_t n) { std::memcpy(o, v, sizeof(float) * n); }
 inline void store_row(c10::BFloat16* o, const float* v, int64_t n) {
   uint16_t* ob = reinterpret_cast<uint16_t*>(o);

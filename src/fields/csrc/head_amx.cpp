@@ -42,6 +42,8 @@
 #include <cstring>
 #include <vector>
 
+#include "bf16_round.h"
+
 namespace {
 
 
@@ -197,13 +199,6 @@ inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, 
       _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
     }
   }
-}
-
-// float32 -> bfloat16 bits, round to nearest even (as torch's conversion; NaN -> 0x7fc0)
-inline uint16_t to_bf16(float v) {
-  uint32_t u;
-  std::memcpy(&u, &v, sizeof(u));
-  return v != v ? static_cast<uint16_t>(0x7fc0) : static_cast<uint16_t>((u + 0x7fffu + ((u >> 16) & 1u)) >> 16);
 }
 
 // Outputs from which the output layer runs as a tile product, its width padded to Ot (a multiple of 32; bf16
@@ -678,7 +673,7 @@ void pack_weight(const at::Tensor& w, int cols, bool over_input, uint16_t* p) {
 // src/fields/head_kernel.py on the stacked, padded weights.
 std::tuple<at::Tensor, at::Tensor> head_pack(std::vector<at::Tensor> a, std::vector<at::Tensor> hidden, bool over_input) {
   const char* fn = "head_pack";
-  TORCH_CHECK(!a.empty(), fn, ": needs at least one input weight");
+  TORCH_CHECK(!a.empty() && a[0].dim() == 2, fn, ": needs at least one input weight [W, K]");
   const int W = static_cast<int>(a[0].size(0)), K = static_cast<int>(a[0].size(1)), Kp = (K + 31) / 32 * 32;
   TORCH_CHECK(W % 2 == 0, fn, ": the width ", W, " must be even");
   auto check = [&](const at::Tensor& w, int in, const char* what, size_t i) {
