@@ -207,6 +207,20 @@ inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, 
 constexpr int kTileOutput = 32;
 inline int tile_outputs(int O) { return O >= kTileOutput ? (O + 31) / 32 * 32 : O; }
 
+// 16 floats -> 16 bf16 at p, round to nearest even
+inline void store16_bf16(uint16_t* p, __m512 v) {
+  __m256bh b = _mm512_cvtneps_pbh(v);
+  _mm256_storeu_si256(reinterpret_cast<__m256i*>(p), reinterpret_cast<__m256i&>(b));
+}
+
+// Row r, columns ob .. ob+15 of the gradient g [rows, W] masked by its layer's output h > 0 (h: [rows, W] bf16);
+// zero for a pad row (r >= nr).
+inline __m512 masked_gradient(const float* g, const uint16_t* h, int W, int r, int nr, int ob) {
+  if (r >= nr) return _mm512_setzero_ps();
+  const __m512 y = load16(h + r * W + ob);
+  return _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y, _mm512_setzero_ps(), _CMP_GT_OQ), _mm512_loadu_ps(g + r * W + ob));
+}
+
 // src [rows, cols] float32 (row stride ld) -> dst [cols, rows] bf16: 16 x 16 blocks, 32 rows at a time.
 // rows a multiple of 32, cols of 16.
 void transpose_bf16(const float* src, int ld, int rows, int cols, uint16_t* dst) {
@@ -589,27 +603,26 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
       std::memset(gx, 0, sizeof(float) * rows * Kp);
       for (int l = L; l >= 0; --l) {
         const uint16_t* Hl = Hp[l] + r0 * W;
-        // mask by h_l > 0 (pad rows: zero): float32 in place in g, bf16-rounded in gpb; bias sum
-        for (int r = 0; r < rows; ++r) {
-          for (int o = 0; o < W; o += 32) {
-            __m512 lo = zero, hi = zero;
-            if (r < nr) {
-              __m512 y0 = load16(Hl + r * W + o), y1 = load16(Hl + r * W + o + 16);
-              lo = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y0, zero, _CMP_GT_OQ), load16(g + r * W + o));
-              hi = _mm512_maskz_mov_ps(_mm512_cmp_ps_mask(y1, zero, _CMP_GT_OQ), load16(g + r * W + o + 16));
-            }
-            _mm512_storeu_ps(g + r * W + o, lo);
-            _mm512_storeu_ps(g + r * W + o + 16, hi);
-            store32_bf16(gpb + r * W + o, lo, hi);
-          }
-        }
+        // one pass over g in 32-row x 16-column blocks: the mask by h_l > 0 (pad rows: zero), the bias sum, the
+        // masked gradient rounded to bf16 row-major (gpb) and, transposed in registers, as [W, rows] (gpt)
         float* gb = gb_t + static_cast<int64_t>(l) * W;
-        for (int o = 0; o < W; o += 16) {
-          __m512 v = load16(gb + o);
-          for (int r = 0; r < nr; ++r) v = _mm512_add_ps(v, load16(g + r * W + o));
-          _mm512_storeu_ps(gb + o, v);
+        for (int ob = 0; ob < W; ob += 16) {
+          __m512 bsum = load16(gb + ob);
+          for (int rp = 0; rp < rows; rp += 32) {
+            __m512 lo[16], hi[16];  // rows rp .. rp+15 and rp+16 .. rp+31 of columns ob .. ob+15
+            for (int r = 0; r < 16; ++r) {
+              lo[r] = masked_gradient(g, Hl, W, rp + r, nr, ob);
+              hi[r] = masked_gradient(g, Hl, W, rp + r + 16, nr, ob);
+              bsum = _mm512_add_ps(bsum, _mm512_add_ps(lo[r], hi[r]));
+              store16_bf16(gpb + (rp + r) * W + ob, lo[r]);
+              store16_bf16(gpb + (rp + r + 16) * W + ob, hi[r]);
+            }
+            transpose16x16(lo);
+            transpose16x16(hi);
+            for (int o = 0; o < 16; ++o) store32_bf16(gpt + (ob + o) * rows + rp, lo[o], hi[o]);
+          }
+          _mm512_storeu_ps(gb + ob, bsum);
         }
-        transpose_bf16(g, W, rows, W, gpt);  // the masked gradient as [W, rows] bf16
         if (reads_x[l] >= 0) {
           const int si = static_cast<int>(reads_x[l]);
           gemm(gpt, rows, xv, rows, Kp, ga_t + static_cast<int64_t>(si) * W * Kp, Kp, W, true);  // g_A += gᵀ x
