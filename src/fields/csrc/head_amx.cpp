@@ -126,8 +126,33 @@ inline void store32_bf16(uint16_t* p, __m512 lo, __m512 hi) {
   _mm512_storeu_si512(reinterpret_cast<void*>(p), reinterpret_cast<__m512i&>(v));
 }
 
+// Tiles 0-3 (a 32 x 32 float32 C block at rows m, columns n: 2 x 2 tiles) += A[m .. m+32][0 .. K] B[0 .. K][n .. n+32],
+// A row-major bf16 (lda), B packed [K/2][N][2] bf16. Tiles 4-5 hold A, 6-7 B.
+inline void tiles_accumulate(const uint16_t* A, int lda, const uint16_t* B, int K, int N, int m, int n) {
+  for (int k = 0; k < K; k += 32) {
+    const uint16_t* a = A + static_cast<size_t>(m) * lda + k;
+    const uint16_t* b = B + static_cast<size_t>(k / 2) * N * 2 + n * 2;
+    _tile_loadd(4, a, lda * 2);
+    _tile_loadd(5, a + 16 * lda, lda * 2);
+    _tile_loadd(6, b, N * 4);
+    _tile_loadd(7, b + 32, N * 4);
+    _tile_dpbf16ps(0, 4, 6);
+    _tile_dpbf16ps(1, 4, 7);
+    _tile_dpbf16ps(2, 5, 6);
+    _tile_dpbf16ps(3, 5, 7);
+  }
+}
+
+// Tiles 0-3 into the 32 x 32 float32 block at c (row stride ldc).
+inline void tiles_store(float* c, int ldc) {
+  _tile_stored(0, c, ldc * 4);
+  _tile_stored(1, c + 16, ldc * 4);
+  _tile_stored(2, c + 16 * ldc, ldc * 4);
+  _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
+}
+
 // C[M][N] (=, or += when acc) A[M][K] B, A row-major bf16 (lda), B packed [K/2][N][2] bf16, C float32 (ldc).
-// M, N, K multiples of 32. Tiles: 0-3 C (2 x 2), 4-5 A, 6-7 B.
+// M, N, K multiples of 32.
 inline void gemm(const uint16_t* A, int lda, const uint16_t* B, int K, int N, float* C, int ldc, int M, bool acc) {
   for (int m = 0; m < M; m += 32) {
     for (int n = 0; n < N; n += 32) {
@@ -143,60 +168,27 @@ inline void gemm(const uint16_t* A, int lda, const uint16_t* B, int K, int N, fl
         _tile_zero(2);
         _tile_zero(3);
       }
-      for (int k = 0; k < K; k += 32) {
-        const uint16_t* a = A + static_cast<size_t>(m) * lda + k;
-        const uint16_t* b = B + static_cast<size_t>(k / 2) * N * 2 + n * 2;
-        _tile_loadd(4, a, lda * 2);
-        _tile_loadd(5, a + 16 * lda, lda * 2);
-        _tile_loadd(6, b, N * 4);
-        _tile_loadd(7, b + 32, N * 4);
-        _tile_dpbf16ps(0, 4, 6);
-        _tile_dpbf16ps(1, 4, 7);
-        _tile_dpbf16ps(2, 5, 6);
-        _tile_dpbf16ps(3, 5, 7);
-      }
-      _tile_stored(0, c, ldc * 4);
-      _tile_stored(1, c + 16, ldc * 4);
-      _tile_stored(2, c + 16 * ldc, ldc * 4);
-      _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
+      tiles_accumulate(A, lda, B, K, N, m, n);
+      tiles_store(c, ldc);
     }
   }
 }
 
-// Forward product with its bias: C[M][N] = C0 + A1 B1 (+ A2 B2 where A2 is given), A row-major bf16, B packed
-// [K/2][N][2] bf16, C0 [16][N] float32 (the bias, one row repeated 16 times: each 16-row C tile starts from it),
-// C float32 (ldc). M, N, K multiples of 32. Both products accumulate in the same tiles (no store and reload between).
+// Forward product with its bias: C[M][N] = C0 + A1 B1 (+ A2 B2 where A2 is given; no A1 B1 where A1 is null),
+// A row-major bf16, B packed [K/2][N][2] bf16, C0 [16][N] float32 (the bias, one row repeated 16 times: each 16-row
+// C tile starts from it), C float32 (ldc). M, N, K multiples of 32. Both products accumulate in the same tiles (no
+// store and reload between).
 inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, const uint16_t* A2, int lda2,
                       const uint16_t* B2, int K2, const float* C0, int N, float* C, int ldc, int M) {
   for (int m = 0; m < M; m += 32) {
     for (int n = 0; n < N; n += 32) {
-      float* c = C + static_cast<size_t>(m) * ldc + n;
       _tile_loadd(0, C0 + n, N * 4);
       _tile_loadd(1, C0 + n + 16, N * 4);
       _tile_loadd(2, C0 + n, N * 4);
       _tile_loadd(3, C0 + n + 16, N * 4);
-      for (int pass = 0; pass < 2; ++pass) {
-        const uint16_t* A = pass == 0 ? A1 : A2;
-        if (A == nullptr) continue;
-        const int lda = pass == 0 ? lda1 : lda2, K = pass == 0 ? K1 : K2;
-        const uint16_t* B = pass == 0 ? B1 : B2;
-        for (int k = 0; k < K; k += 32) {
-          const uint16_t* a = A + static_cast<size_t>(m) * lda + k;
-          const uint16_t* b = B + static_cast<size_t>(k / 2) * N * 2 + n * 2;
-          _tile_loadd(4, a, lda * 2);
-          _tile_loadd(5, a + 16 * lda, lda * 2);
-          _tile_loadd(6, b, N * 4);
-          _tile_loadd(7, b + 32, N * 4);
-          _tile_dpbf16ps(0, 4, 6);
-          _tile_dpbf16ps(1, 4, 7);
-          _tile_dpbf16ps(2, 5, 6);
-          _tile_dpbf16ps(3, 5, 7);
-        }
-      }
-      _tile_stored(0, c, ldc * 4);
-      _tile_stored(1, c + 16, ldc * 4);
-      _tile_stored(2, c + 16 * ldc, ldc * 4);
-      _tile_stored(3, c + 16 * ldc + 16, ldc * 4);
+      if (A1 != nullptr) tiles_accumulate(A1, lda1, B1, K1, N, m, n);
+      if (A2 != nullptr) tiles_accumulate(A2, lda2, B2, K2, N, m, n);
+      tiles_store(C + static_cast<size_t>(m) * ldc + n, ldc);
     }
   }
 }
