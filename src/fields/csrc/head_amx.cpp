@@ -193,6 +193,29 @@ inline void gemm_bias(const uint16_t* A1, int lda1, const uint16_t* B1, int K1, 
   }
 }
 
+// One weight w [out, in] (float32, any strides) as a bf16 pack of [rows, cols] >= [out, in] (the rows past `out`
+// and the columns past `in` zero): over_input, "VNNI over its input" [cols/2][rows][2] (p[k][o][j] = w[o][2k+j]);
+// else "VNNI over its output" [rows/2][cols][2] (p[k][i][j] = w[2k+j][i]). rows and cols even.
+void pack_weight(const at::Tensor& w, int rows, int cols, bool over_input, uint16_t* p) {
+  const int out = static_cast<int>(w.size(0)), in = static_cast<int>(w.size(1));
+  const float* wp = w.data_ptr<float>();
+  const int64_t so = w.stride(0), si = w.stride(1);
+  auto elem = [&](int o, int i) { return o < out && i < in ? to_bf16(wp[o * so + i * si]) : static_cast<uint16_t>(0); };
+  if (over_input) {
+    for (int k = 0; k < cols / 2; ++k)
+      for (int o = 0; o < rows; ++o) {
+        p[(k * rows + o) * 2] = elem(o, 2 * k);
+        p[(k * rows + o) * 2 + 1] = elem(o, 2 * k + 1);
+      }
+  } else {
+    for (int k = 0; k < rows / 2; ++k)
+      for (int i = 0; i < cols; ++i) {
+        p[(k * cols + i) * 2] = elem(2 * k, i);
+        p[(k * cols + i) * 2 + 1] = elem(2 * k + 1, i);
+      }
+  }
+}
+
 // Outputs from which the output layer runs as a tile product, its width padded to Ot (a multiple of 32; bf16
 // operands, float32 accumulation: its weight rounded to bf16 as the hidden layers' are); below, float32 dot
 // products on the bf16 h_L (a head's few values).
@@ -401,10 +424,8 @@ std::tuple<at::Tensor, std::vector<at::Tensor>> head_forward(
   std::vector<uint16_t> wo_pack;  // a tiled output layer's weight, VNNI over its input [W/2][Ot][2] (rows >= O zero)
   std::vector<float> bias16_out;  // its bias in 16 rows [16][Ot]
   if (tile_out) {
-    wo_pack.assign(static_cast<size_t>(W) * Ot, 0);
-    for (int k = 0; k < W / 2; ++k)
-      for (int o = 0; o < O; ++o)
-        for (int j = 0; j < 2; ++j) wo_pack[(static_cast<size_t>(k) * Ot + o) * 2 + j] = to_bf16(wo[o * W + 2 * k + j]);
+    wo_pack.resize(static_cast<size_t>(W) * Ot);
+    pack_weight(w_out, Ot, W, true, wo_pack.data());
     bias16_out.assign(static_cast<size_t>(16) * Ot, 0.0f);
     for (int r = 0; r < 16; ++r) std::memcpy(bias16_out.data() + r * Ot, bo, sizeof(float) * O);
   }
@@ -523,9 +544,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   const bool tile_out = O >= kTileOutput;
   std::vector<uint16_t> wo_pack;  // a tiled output layer's weight, VNNI over its output [Ot/2][W][2] (rows >= O zero)
   if (tile_out) {
-    wo_pack.assign(static_cast<size_t>(Ot) * W, 0);
-    for (int o = 0; o < O; ++o)
-      for (int i = 0; i < W; ++i) wo_pack[(static_cast<size_t>(o / 2) * W + i) * 2 + o % 2] = to_bf16(wo[o * W + i]);
+    wo_pack.resize(static_cast<size_t>(Ot) * W);
+    pack_weight(w_out, Ot, W, false, wo_pack.data());
   }
   // per thread, float32: g_a [S, W, Kp], g_w [L, W, W], g_bias [L+1, W], g_w_out [Ot, W], g_b_out [O]
   const int64_t n_a = static_cast<int64_t>(S) * W * Kp, n_w = static_cast<int64_t>(L) * W * W;
@@ -649,29 +669,6 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
   return {g_x, g_a, g_w, g_b, g_wo, g_bo};
 }
 
-// One weight w [out, in] (float32, any strides) as a bf16 pack of [rows, cols] = [out, cols >= in] (the columns
-// past `in` zero): over_input, "VNNI over its input" [cols/2][out][2] (p[k][o][j] = w[o][2k+j]); else "VNNI over
-// its output" [out/2][cols][2] (p[k][i][j] = w[2k+j][i]).
-void pack_weight(const at::Tensor& w, int cols, bool over_input, uint16_t* p) {
-  const int out = static_cast<int>(w.size(0)), in = static_cast<int>(w.size(1));
-  const float* wp = w.data_ptr<float>();
-  const int64_t so = w.stride(0), si = w.stride(1);
-  auto elem = [&](int o, int i) { return i < in ? to_bf16(wp[o * so + i * si]) : static_cast<uint16_t>(0); };
-  if (over_input) {
-    for (int k = 0; k < cols / 2; ++k)
-      for (int o = 0; o < out; ++o) {
-        p[(k * out + o) * 2] = elem(o, 2 * k);
-        p[(k * out + o) * 2 + 1] = elem(o, 2 * k + 1);
-      }
-  } else {
-    for (int k = 0; k < out / 2; ++k)
-      for (int i = 0; i < cols; ++i) {
-        p[(k * cols + i) * 2] = elem(2 * k, i);
-        p[(k * cols + i) * 2 + 1] = elem(2 * k + 1, i);
-      }
-  }
-}
-
 // A head's weight packs for the kernel, built in one call: a[s] [W, K] the input weights (zero-padded to Kp, K
 // rounded up to 32) and hidden[l] [W, W], float32 with any strides. over_input: the forward's packs ([S, Kp/2, W, 2]
 // and [L, W/2, W, 2]); else the backward's ([S, W/2, Kp, 2] and [L, W/2, W, 2]). Equals pack_in / pack_out of
@@ -693,8 +690,8 @@ std::tuple<at::Tensor, at::Tensor> head_pack(std::vector<at::Tensor> a, std::vec
   at::Tensor ph = at::empty({L, W / 2, W, 2}, opts);
   uint16_t* pap = bf16_ptr_mut(pa);
   uint16_t* php = bf16_ptr_mut(ph);
-  for (int64_t i = 0; i < S; ++i) pack_weight(a[i], Kp, over_input, pap + i * Kp * W);
-  for (int64_t i = 0; i < L; ++i) pack_weight(hidden[i], W, over_input, php + i * W * W);
+  for (int64_t i = 0; i < S; ++i) pack_weight(a[i], W, Kp, over_input, pap + i * Kp * W);
+  for (int64_t i = 0; i < L; ++i) pack_weight(hidden[i], W, W, over_input, php + i * W * W);
   return {pa, ph};
 }
 
