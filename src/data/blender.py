@@ -19,7 +19,17 @@ from src.core.cameras import Camera, opengl_to_opencv
 from src.data.base import DatasetError, DatasetReader, Scene, View, read_json
 from src.data.images import composite, read_image, resize_premultiplied
 from src.data.normalise import cameras_extent, fit_normalisation, normalise_camera
-from src.data.validate import check_fov, check_pose, check_size
+from src.data.validate import (
+    check_fov,
+    check_int,
+    check_matrix,
+    check_number,
+    check_pose,
+    check_size,
+    inside_root,
+    kind_of,
+    shown,
+)
 from src.data.views import select_views
 
 IMAGE_EXTENSIONS = (".png", ".exr", ".jpg", ".jpeg", "")
@@ -38,8 +48,40 @@ def parse_background(background: str | list[float] | tuple[float, ...]) -> Tenso
     return bg
 
 
+def check_frame(frame: object, index: int, path: Path) -> torch.Tensor:
+    """Check one entry of a transforms JSON's ``frames``; returns its transform_matrix [4, 4] (float64).
+
+    ``file_path`` must be a non-empty string naming a file inside the scene folder; ``transform_matrix``
+    4x4 numbers forming a rigid transform; ``time`` (if present) a number; ``frame_id`` and
+    ``camera_id`` (if present) integers. Errors name the file, the frame and the field.
+    """
+    where = f"{path}: frames[{index}]"
+    if not isinstance(frame, dict):
+        raise DatasetError(f"{where}={shown(frame)} is {kind_of(frame)}, expected an object with file_path and "
+                           "transform_matrix")
+    for key in ("file_path", "transform_matrix"):
+        if key not in frame:
+            raise DatasetError(f"{path}: frames[{index}] is missing key '{key}'")
+    file_path = frame["file_path"]
+    if not isinstance(file_path, str) or not file_path.strip():
+        raise DatasetError(f"{where}.file_path={file_path!r}: expected a non-empty relative path (a string)")
+    inside_root(path.parent, path.parent / file_path, where, "image", file_path)
+    matrix = check_matrix(frame["transform_matrix"], str(path), f"frames[{index}].transform_matrix", (4, 4))
+    check_pose(matrix, where, "transform_matrix")
+    if "time" in frame:
+        check_number(frame["time"], str(path), f"frames[{index}].time", "a time in [0, 1]")
+    for key in ("frame_id", "camera_id"):
+        if key in frame:
+            check_int(frame[key], str(path), f"frames[{index}].{key}", minimum=None)
+    return matrix
+
+
 def load_transforms(path: Path) -> dict:
-    """Read and validate a transforms JSON; errors name the file and the key."""
+    """Read and validate a transforms JSON; errors name the file, the frame and the key.
+
+    The JSON and every image it lists must lie inside the scene folder (the JSON's own folder).
+    """
+    inside_root(path.parent, path, str(path.parent), "transforms file", path.name)
     data = read_json(path, "transforms file")
     for key in ("camera_angle_x", "frames"):
         if key not in data:
@@ -47,28 +89,25 @@ def load_transforms(path: Path) -> dict:
     if not isinstance(data["frames"], list) or not data["frames"]:
         raise DatasetError(f"{path}: 'frames' must be a non-empty list")
     for i, fr in enumerate(data["frames"]):
-        for key in ("file_path", "transform_matrix"):
-            if key not in fr:
-                raise DatasetError(f"{path}: frames[{i}] is missing key '{key}'")
-        m = fr["transform_matrix"]
-        if not (isinstance(m, list) and len(m) == 4 and all(isinstance(r, list) and len(r) == 4 for r in m)):
-            raise DatasetError(f"{path}: frames[{i}].transform_matrix must be a 4x4 list of lists")
-        try:
-            matrix = torch.tensor(m, dtype=torch.float64)
-        except (TypeError, ValueError):
-            raise DatasetError(f"{path}: frames[{i}].transform_matrix must hold numbers") from None
-        check_pose(matrix, f"{path}: frames[{i}]", "transform_matrix")
+        check_frame(fr, i, path)
     check_fov(data["camera_angle_x"], str(path))
     return data
 
 
-def resolve_image(root: Path, file_path: str, json_path: Path) -> Path:
-    """The image file a frame's ``file_path`` refers to (trying the usual extensions)."""
-    base = (root / file_path).resolve()
+def resolve_image(root: Path, file_path: str, json_path: Path, index: int | None = None) -> Path:
+    """The image file a frame's ``file_path`` refers to (trying the usual extensions), resolved.
+
+    Raises:
+        DatasetError if it is missing or lies (symlinks followed) outside ``root``; the message names
+        ``json_path`` and the frame ``index``.
+    """
+    where = str(json_path) if index is None else f"{json_path}: frames[{index}]"
+    base = root / file_path  # an absolute file_path replaces root: refused just below
+    inside_root(root, base, where, "image", file_path)
     for ext in IMAGE_EXTENSIONS:
         cand = base.with_name(base.name + ext) if ext else base
         if cand.is_file():
-            return cand
+            return inside_root(root, cand, where, "image", file_path)
     raise DatasetError(f"{json_path}: image '{file_path}' listed but not found (tried {base}.png/.exr/...)")
 
 
@@ -96,7 +135,7 @@ def read_split(root: Path, split: str, background: Tensor, downscale: float,
     first_path: Path | None = None
     for i in wanted:
         fr = frames[i]
-        path = resolve_image(root, fr["file_path"], json_path)
+        path = resolve_image(root, fr["file_path"], json_path, i)
         rgba = read_image(path)
         if size is None:
             size, first_path = tuple(rgba.shape[:2]), path
@@ -189,7 +228,8 @@ class BlenderDataset(DatasetReader):
             masks = [v.mask for v in train]
             if any(m is None for m in masks):
                 raise DatasetError(f"{self.root}: normalisation needs RGBA training images (alpha masks)")
-            center, scale = fit_normalisation([v.camera for v in train], masks)
+            center, scale = fit_normalisation([v.camera for v in train], masks,
+                                              where=str(self.root / "transforms_train.json"))
             for v in (*train, *test, *val):
                 v.camera = normalise_camera(v.camera, center, scale)
             norm = {"center": center.tolist(), "scale": scale}

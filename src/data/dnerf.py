@@ -35,6 +35,7 @@ from src.data.blender import load_transforms, parse_background, read_split
 from src.data.detect import check_format, check_root
 from src.data.hull import hull_bounds
 from src.data.normalise import cameras_extent, normalise_camera
+from src.data.validate import check_int, check_number
 
 log = logging.getLogger(__name__)
 
@@ -55,11 +56,8 @@ def frame_times(data: dict, path: Path) -> list[float]:
     for i, fr in enumerate(data["frames"]):
         if "time" not in fr:
             raise DatasetError(f"{path}: frames[{i}] is missing key 'time' (a dynamic scene needs one per frame)")
-        try:
-            t = float(fr["time"])
-        except (TypeError, ValueError) as e:
-            raise DatasetError(f"{path}: frames[{i}].time={fr['time']!r} is not a number") from e
-        if not (0.0 <= t <= 1.0) or not np.isfinite(t):
+        t = check_number(fr["time"], str(path), f"frames[{i}].time", "a time in [0, 1]")
+        if not 0.0 <= t <= 1.0:
             raise DatasetError(f"{path}: frames[{i}].time={t} is outside [0, 1]")
         times.append(t)
     return times
@@ -124,11 +122,9 @@ def fit_dynamic_normalisation(groups: list[list[View]], target: float = 0.9, res
         masks = [v.mask for v in g]
         if any(m is None for m in masks):
             raise DatasetError(f"{where}: normalisation needs masks (alpha or mask images) for every training view")
-        try:
-            glo, ghi = hull_bounds([v.camera for v in g], masks, resolution=resolution)
-        except ValueError as e:
-            frames = sorted({v.camera.frame_id for v in g})
-            raise DatasetError(f"{where}: frames {frames[0]}..{frames[-1]}: {e}") from e
+        frames = sorted({v.camera.frame_id for v in g})
+        glo, ghi = hull_bounds([v.camera for v in g], masks, resolution=resolution,
+                               where=f"{where}: frames {frames[0]}..{frames[-1]}")
         lo = glo if lo is None else torch.minimum(lo, glo)
         hi = ghi if hi is None else torch.maximum(hi, ghi)
     if lo is None:
@@ -186,7 +182,8 @@ class DNerfDataset(DatasetReader):
         data = load_transforms(path)
         times = frame_times(data, path)
         if all("frame_id" in fr for fr in data["frames"]):
-            check_monotonic_frame_ids([int(fr["frame_id"]) for fr in data["frames"]], times, path)
+            ids = [check_int(fr["frame_id"], str(path), f"frames[{i}].frame_id") for i, fr in enumerate(data["frames"])]
+            check_monotonic_frame_ids(ids, times, path)
         keep = strided(len(times), n_keep)
         views, _ = read_split(self.root, split, self.background, self.downscale, keep)
         gap = 0.0

@@ -68,9 +68,9 @@ class DTUDataset(DatasetReader):
     def load(self) -> Scene:
         """Read the scan: the selected training views, the test views, cameras in the unit-sphere frame."""
         check_format(self.root, "dtu")
-        images, masks = folder_frames(self.root)
+        images, masks = folder_frames(self.root, root=self.root)
         npz = self.root / "cameras_sphere.npz"
-        cams = neus_cameras(npz, len(images), self.root)
+        cams = neus_cameras(npz, len(images), self.root, self.root)
         chosen = self.train_ids[: self.n_views] if self.n_views is not None else list(self.train_ids)
         test_ids = self.test_ids if self.test_ids is not None else [
             i for i in range(len(images)) if i not in self.exclude_ids and i not in self.train_ids]

@@ -38,6 +38,7 @@ from src.data.dnerf import (
     strided,
 )
 from src.data.normalise import cameras_extent
+from src.data.validate import check_int
 from src.data.views import select_views
 
 log = logging.getLogger(__name__)
@@ -52,8 +53,7 @@ def read_rig(path: Path) -> tuple[dict, list[dict]]:
         for key in ("frame_id", "camera_id"):
             if key not in fr:
                 raise DatasetError(f"{path}: frames[{i}] is missing key '{key}' (multi-view dynamic layout)")
-            if not isinstance(fr[key], int) or fr[key] < 0:
-                raise DatasetError(f"{path}: frames[{i}].{key}={fr[key]!r} must be a non-negative integer")
+            check_int(fr[key], str(path), f"frames[{i}].{key}", minimum=0)
         key = (fr["camera_id"], fr["frame_id"])
         if key in seen:
             raise DatasetError(f"{path}: camera_id {key[0]} has frame_id {key[1]} twice")

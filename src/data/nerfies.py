@@ -39,35 +39,106 @@ from src.data.detect import check_format, check_root
 from src.data.dnerf import apply_normalisation, fit_dynamic_normalisation, hull_groups, scene_meta, strided
 from src.data.normalise import cameras_extent
 from src.data.owlii import COMPOSITE_MODES, IMAGE_SUFFIXES, load_rgb_mask
+from src.data.validate import check_int, check_list, check_matrix, check_number, inside_root, kind_of, shown
 
 log = logging.getLogger(__name__)
 
 
-def nerfies_camera(path: Path) -> tuple[torch.Tensor, dict]:
-    """(world_to_cam [4, 4] float64, intrinsics dict) of a Nerfies camera JSON (OpenCV axes)."""
+def optional_numbers(cam: dict, key: str, where: str) -> list[float]:
+    """The numbers of the optional list ``cam[key]`` (empty if absent); DatasetError naming any bad entry."""
+    values = check_list(cam.get(key, []), where, key)
+    return [check_number(x, where, f"{key}[{k}]") for k, x in enumerate(values)]
+
+
+def nerfies_intrinsics(cam: dict, where: str) -> dict:
+    """fx, fy, cx, cy, width, height of a Nerfies camera JSON, every value type-checked."""
+    size = check_list(cam["image_size"], where, "image_size", 2)
+    w, h = (check_int(x, where, f"image_size[{k}]", minimum=1) for k, x in enumerate(size))
+    f = check_number(cam["focal_length"], where, "focal_length", "a focal length in pixels > 0", lambda x: x > 0)
+    cx, cy = w / 2.0, h / 2.0
+    if "principal_point" in cam:
+        cx, cy = check_matrix(cam["principal_point"], where, "principal_point", (2,)).tolist()
+    aspect = 1.0
+    if "pixel_aspect_ratio" in cam:
+        aspect = check_number(cam["pixel_aspect_ratio"], where, "pixel_aspect_ratio", "a ratio > 0", lambda x: x > 0)
+    return {"fx": f, "fy": f * aspect, "cx": cx, "cy": cy, "width": w, "height": h}
+
+
+def nerfies_camera(path: Path, root: Path | None = None) -> tuple[torch.Tensor, dict]:
+    """(world_to_cam [4, 4] float64, intrinsics dict) of a Nerfies camera JSON (OpenCV axes).
+
+    ``root``: the dataset folder the file must lie in (default: the file's ``camera/`` folder's parent).
+    """
+    inside_root(path.parent.parent if root is None else root, path, str(path.parent), "camera file", path.name)
     cam = read_json(path, "camera file")
+    where = str(path)
     for key in ("orientation", "position", "focal_length", "image_size"):
         if key not in cam:
             raise DatasetError(f"{path}: missing key '{key}'")
-    R = np.asarray(cam["orientation"], dtype=np.float64)
-    c = np.asarray(cam["position"], dtype=np.float64)
-    if R.shape != (3, 3) or c.shape != (3,):
-        raise DatasetError(f"{path}: 'orientation' must be 3x3 and 'position' 3 values")
+    R = check_matrix(cam["orientation"], where, "orientation", (3, 3)).numpy()
+    c = check_matrix(cam["position"], where, "position", (3,)).numpy()
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-4):
         raise DatasetError(f"{path}: 'orientation' is not a rotation matrix")
-    w, h = (int(x) for x in cam["image_size"])
-    f = float(cam["focal_length"])
-    cx, cy = (float(x) for x in cam.get("principal_point", [w / 2.0, h / 2.0]))
-    aspect = float(cam.get("pixel_aspect_ratio", 1.0))
-    if abs(float(cam.get("skew", 0.0))) > 1e-6:
-        log.warning("%s: skew %s ignored (pinhole camera without skew)", path, cam["skew"])
-    dist = [*cam.get("radial_distortion", []), *cam.get("tangential_distortion", [])]
-    if any(abs(float(d)) > 1e-9 for d in dist):
+    intr = nerfies_intrinsics(cam, where)
+    skew = check_number(cam.get("skew", 0.0), where, "skew")
+    if abs(skew) > 1e-6:
+        log.warning("%s: skew %s ignored (pinhole camera without skew)", path, skew)
+    dist = [*optional_numbers(cam, "radial_distortion", where), *optional_numbers(cam, "tangential_distortion", where)]
+    if any(abs(d) > 1e-9 for d in dist):
         log.warning("%s: lens distortion %s ignored (images are not undistorted)", path, dist)
     w2c = torch.eye(4, dtype=torch.float64)
     w2c[:3, :3] = torch.from_numpy(R)
     w2c[:3, 3] = torch.from_numpy(-R @ c)
-    return w2c, {"fx": f, "fy": f * aspect, "cx": cx, "cy": cy, "width": w, "height": h}
+    return w2c, intr
+
+
+def read_scene_json(path: Path) -> dict:
+    """``scale`` (> 0), ``center`` [3] and the optional ``near`` / ``far`` (0 <= near < far) of scene.json."""
+    sc = read_json(path, "scene file")
+    where = str(path)
+    for key in ("scale", "center"):
+        if key not in sc:
+            raise DatasetError(f"{path}: missing key '{key}'")
+    out = {"scale": check_number(sc["scale"], where, "scale", "a scale > 0", lambda x: x > 0),
+           "center": check_matrix(sc["center"], where, "center", (3,)).tolist(),
+           "near": None, "far": None}
+    if sc.get("near") is not None:
+        out["near"] = check_number(sc["near"], where, "near", "a distance >= 0", lambda x: x >= 0)
+    if sc.get("far") is not None:
+        near = out["near"] or 0.0
+        out["far"] = check_number(sc["far"], where, "far", f"a distance > near ({near:g})", lambda x: x > near)
+    return out
+
+
+def read_ids(path: Path) -> dict[str, list[str]]:
+    """``train_ids`` (non-empty) and ``val_ids`` of dataset.json: lists of non-empty strings."""
+    ds = read_json(path, "dataset file")
+    out: dict[str, list[str]] = {}
+    for key in ("train_ids", "val_ids"):
+        if key not in ds or not isinstance(ds[key], list):
+            raise DatasetError(f"{path}: missing list '{key}'")
+        for k, iid in enumerate(ds[key]):
+            if not isinstance(iid, str) or not iid:
+                raise DatasetError(f"{path}: {key}[{k}]={shown(iid)} is {kind_of(iid)}, expected a non-empty id "
+                                   "string (the name of camera/<id>.json and rgb/<s>x/<id>.png)")
+        out[key] = list(ds[key])
+    if not out["train_ids"]:
+        raise DatasetError(f"{path}: 'train_ids' is empty")
+    return out
+
+
+def frame_record(md: dict, iid: str, md_path: Path) -> dict:
+    """``{frame_id, camera_id}`` of image ``iid`` from metadata.json (time_id, else warp_id; camera_id 0 if absent)."""
+    if iid not in md:
+        raise DatasetError(f"{md_path}: no entry for id '{iid}'")
+    m = md[iid]
+    if not isinstance(m, dict):
+        raise DatasetError(f"{md_path}: '{iid}'={shown(m)} is {kind_of(m)}, expected an object with 'time_id'")
+    tid = m.get("time_id", m.get("warp_id"))
+    if isinstance(tid, bool) or not isinstance(tid, int) or tid < 0:
+        raise DatasetError(f"{md_path}: '{iid}' needs a non-negative integer 'time_id' (or 'warp_id'), "
+                           f"got {shown(tid)} ({kind_of(tid)})")
+    return {"frame_id": tid, "camera_id": check_int(m.get("camera_id", 0), str(md_path), f"{iid}.camera_id")}
 
 
 class NerfiesDataset(DatasetReader):
@@ -104,17 +175,29 @@ class NerfiesDataset(DatasetReader):
         self.normalise = normalise
         self.hull_min_views = int(hull_min_views)
 
+    def _file(self, kind: str, iid: str) -> Path | None:
+        """The ``<kind>/<s>x/<iid>.<ext>`` file (checked to lie inside the dataset), or None if there is none."""
+        folder = self.root / kind / f"{self.image_scale}x"
+        what = "image" if kind == "rgb" else "mask"
+        inside_root(self.root, folder / iid, str(folder), what, iid)
+        path = next((folder / f"{iid}{s}" for s in IMAGE_SUFFIXES if (folder / f"{iid}{s}").is_file()), None)
+        if path is not None:
+            inside_root(self.root, path, str(folder), what, path.name)
+        return path
+
     def _image(self, iid: str) -> tuple[Path, Path | None]:
-        folder = self.root / "rgb" / f"{self.image_scale}x"
-        img = next((folder / f"{iid}{s}" for s in IMAGE_SUFFIXES if (folder / f"{iid}{s}").is_file()), None)
+        img = self._file("rgb", iid)
         if img is None:
-            raise DatasetError(f"image of id '{iid}' not found: {folder / iid}.png")
-        mfolder = self.root / "mask" / f"{self.image_scale}x"
-        mask = next((mfolder / f"{iid}{s}" for s in IMAGE_SUFFIXES if (mfolder / f"{iid}{s}").is_file()), None)
-        return img, mask
+            raise DatasetError(f"image of id '{iid}' not found: {self.root / 'rgb' / f'{self.image_scale}x' / iid}.png")
+        return img, self._file("mask", iid)
+
+    def _json(self, name: str, what: str) -> Path:
+        """``root / name`` once checked to lie inside the dataset folder."""
+        inside_root(self.root, self.root / name, str(self.root), what, name)
+        return self.root / name
 
     def _view(self, iid: str, k: int, meta: dict, n_frames: int, mask_files: bool) -> View:
-        w2c, intr = nerfies_camera(self.root / "camera" / f"{iid}.json")
+        w2c, intr = nerfies_camera(self.root / "camera" / f"{iid}.json", self.root)
         img_path, mask_path = self._image(iid)
         rgb, mask, (h, w) = load_rgb_mask(img_path, mask_path if mask_files else None, self.background,
                                           self.downscale, self.composite)
@@ -134,29 +217,11 @@ class NerfiesDataset(DatasetReader):
             raise DatasetError(f"dataset.n_views={self.n_views}: the Nerfies layout defines its training views "
                              "(dataset.json train_ids); set dataset.n_views=null")
         check_format(self.root, "nerfies")
-        ds = read_json(self.root / "dataset.json", "dataset file")
-        for key in ("train_ids", "val_ids"):
-            if key not in ds or not isinstance(ds[key], list):
-                raise DatasetError(f"{self.root / 'dataset.json'}: missing list '{key}'")
-        if not ds["train_ids"]:
-            raise DatasetError(f"{self.root / 'dataset.json'}: 'train_ids' is empty")
-        md_path = self.root / "metadata.json"
+        ds = read_ids(self._json("dataset.json", "dataset file"))
+        md_path = self._json("metadata.json", "metadata file")
         md = read_json(md_path, "metadata file")
-        scene_path = self.root / "scene.json"
-        sc = read_json(scene_path, "scene file")
-        for key in ("scale", "center"):
-            if key not in sc:
-                raise DatasetError(f"{scene_path}: missing key '{key}'")
-        meta: dict[str, dict] = {}
-        for iid in (*ds["train_ids"], *ds["val_ids"]):
-            if iid not in md:
-                raise DatasetError(f"{md_path}: no entry for id '{iid}'")
-            m = md[iid]
-            tid = m.get("time_id", m.get("warp_id"))
-            if not isinstance(tid, int) or tid < 0:
-                raise DatasetError(f"{md_path}: '{iid}' needs a non-negative integer 'time_id' (or 'warp_id'), "
-                                   f"got {tid!r}")
-            meta[iid] = {"frame_id": tid, "camera_id": int(m.get("camera_id", 0))}
+        sc = read_scene_json(self._json("scene.json", "scene file"))
+        meta = {iid: frame_record(md, iid, md_path) for iid in (*ds["train_ids"], *ds["val_ids"])}
         n_frames = 1 + max(meta[i]["frame_id"] for i in ds["train_ids"])
         beyond = [i for i in ds["val_ids"] if meta[i]["frame_id"] >= n_frames]
         if beyond:
@@ -167,8 +232,8 @@ class NerfiesDataset(DatasetReader):
         train = [self._view(i, k, meta[i], n_frames, mask_files) for k, i in enumerate(ds["train_ids"])]
         test = [self._view(i, ds["val_ids"].index(i), meta[i], n_frames, mask_files) for i in test_ids]
         has_masks = all(v.mask is not None for v in train)
-        center = torch.tensor([float(x) for x in sc["center"]], dtype=torch.float64)
-        scale = float(sc["scale"])
+        center = torch.tensor(sc["center"], dtype=torch.float64)
+        scale = sc["scale"]
         source = "scene.json"
         if has_masks and self.normalise:
             tmp = [View(camera=v.camera, image=v.image, mask=v.mask, image_id=v.image_id) for v in train]

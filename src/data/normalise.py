@@ -24,9 +24,12 @@ def normalise_camera(cam: Camera, center: Tensor, scale: float) -> Camera:
 
 
 def fit_normalisation(cameras: list[Camera], masks: list[Tensor], target: float = 0.9,
-                      resolution: int = 64) -> tuple[Tensor, float]:
-    """(center [3], scale) mapping the training masks' visual-hull box into [-target, target]^3."""
-    lo, hi = hull_bounds(cameras, masks, resolution=resolution)
+                      resolution: int = 64, where: str = "") -> tuple[Tensor, float]:
+    """(center [3], scale) mapping the training masks' visual-hull box into [-target, target]^3.
+
+    Raises DatasetError (prefixed by ``where``) if the hull is empty or unbounded (see ``hull_bounds``).
+    """
+    lo, hi = hull_bounds(cameras, masks, resolution=resolution, where=where)
     center = 0.5 * (lo + hi)
     half = float((0.5 * (hi - lo)).max())
     return center.to(torch.float32), target / half

@@ -34,7 +34,7 @@ from src.data.detect import check_format, check_root
 from src.data.dnerf import scene_meta, strided
 from src.data.images import read_image
 from src.data.normalise import cameras_extent
-from src.data.validate import check_size
+from src.data.validate import check_array, check_size, inside_root
 from src.data.views import select_views
 
 log = logging.getLogger(__name__)
@@ -73,8 +73,10 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return K / K[2, 2], w2c
 
 
-def load_npz(path: Path) -> dict[str, np.ndarray]:
-    """All arrays of an npz file (DatasetError naming the file if it is missing or unreadable)."""
+def load_npz(path: Path, root: Path | None = None) -> dict[str, np.ndarray]:
+    """All arrays of an npz file (DatasetError naming the file if missing, unreadable or outside ``root``)."""
+    if root is not None:
+        inside_root(root, path, str(path.parent), "camera file", path.name)
     if not path.is_file():
         raise DatasetError(f"camera file not found: {path}")
     try:
@@ -84,28 +86,51 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
         raise DatasetError(f"cannot read {path}: {e}") from e
 
 
-def neus_cameras(npz_path: Path, n_images: int, folder: Path) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """(K [3, 3], w2c [4, 4] in the unit-sphere frame, scale_mat [4, 4]) of images 0..n_images-1."""
-    cams = load_npz(npz_path)
+def check_projection(world: np.ndarray, scale: np.ndarray, npz_path: Path, i: int) -> np.ndarray:
+    """``P = world_mat_i @ scale_mat_i`` [4, 4], checked to be a pinhole projection.
+
+    Raises:
+        DatasetError unless scale_mat_i has a positive scale and P a full-rank 3x3 block.
+    """
+    S = np.eye(4)
+    S[: scale.shape[0]] = scale
+    det_s = float(np.linalg.det(S[:3, :3]))
+    if not det_s > 0:
+        raise DatasetError(f"{npz_path}: 'scale_mat_{i}' has a 3x3 block with determinant {det_s:.4g}, expected a "
+                           "positive scale (x_world = scale_mat @ x_unit)")
+    W = np.eye(4)
+    W[:3] = world[:3]
+    P = W @ S
+    block = P[:3, :3]
+    if abs(float(np.linalg.det(block))) <= 1e-12 * max(float(np.abs(block).max()), 1e-300) ** 3:
+        raise DatasetError(f"{npz_path}: 'world_mat_{i}' @ 'scale_mat_{i}' has a singular 3x3 block, expected a "
+                           "pinhole projection K [R | t] with positive focal lengths")
+    return P
+
+
+def neus_cameras(npz_path: Path, n_images: int, folder: Path,
+                 root: Path | None = None) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(K [3, 3], w2c [4, 4] in the unit-sphere frame, scale_mat [4, 4]) of images 0..n_images-1.
+
+    ``root``: the dataset folder the npz file must lie in (default: ``folder``).
+    """
+    cams = load_npz(npz_path, folder if root is None else root)
+    mats: dict[str, np.ndarray] = {}
     for i in range(n_images):
         for key in (f"world_mat_{i}", f"scale_mat_{i}"):
             if key not in cams:
                 raise DatasetError(f"{npz_path}: missing '{key}' (needed for image {i} of {folder})")
-            if cams[key].shape not in ((4, 4), (3, 4)):
-                raise DatasetError(f"{npz_path}: '{key}' has shape {cams[key].shape}, expected 4x4 or 3x4")
-            if not np.isfinite(cams[key]).all():
-                raise DatasetError(f"{npz_path}: '{key}' holds non-finite values (NaN or Inf)")
+            mats[key] = check_array(cams[key], str(npz_path), key, ((4, 4), (3, 4)))
     n_mats = len([k for k in cams if re.fullmatch(r"world_mat_\d+", k)])
     if n_mats != n_images:
         raise DatasetError(f"{npz_path}: {n_mats} world_mat_* entries but {n_images} images in {folder} "
                            "(cameras and images must match one to one)")
     out = []
     for i in range(n_images):
+        P = check_projection(mats[f"world_mat_{i}"], mats[f"scale_mat_{i}"], npz_path, i)
+        K, w2c = decompose_projection(P)
         S = np.eye(4)
-        S[: cams[f"scale_mat_{i}"].shape[0]] = cams[f"scale_mat_{i}"]
-        W = np.eye(4)
-        W[:3] = cams[f"world_mat_{i}"][:3]
-        K, w2c = decompose_projection(W @ S)
+        S[: mats[f"scale_mat_{i}"].shape[0]] = mats[f"scale_mat_{i}"]
         out.append((K, w2c, S))
     return out
 
@@ -180,8 +205,12 @@ def load_rgb_mask(image_path: Path, mask_path: Path | None, background: Tensor, 
     return rgb.clamp(0, 1).contiguous(), None if mask is None else mask.clamp(0, 1).contiguous(), (h, w)
 
 
-def folder_frames(cam_dir: Path, need_masks: bool = True) -> tuple[list[Path], list[Path] | None]:
-    """(images, masks) of a NeuS camera folder (``rgb/`` or ``image/``, ``mask/``), matched by position."""
+def folder_frames(cam_dir: Path, need_masks: bool = True,
+                  root: Path | None = None) -> tuple[list[Path], list[Path] | None]:
+    """(images, masks) of a NeuS camera folder (``rgb/`` or ``image/``, ``mask/``), matched by position.
+
+    Every file must lie (symlinks followed) inside ``root``, the dataset folder (default: ``cam_dir``).
+    """
     img_dir = next((cam_dir / d for d in ("rgb", "image") if (cam_dir / d).is_dir()), None)
     if img_dir is None:
         raise DatasetError(f"{cam_dir}: no 'rgb/' or 'image/' folder")
@@ -189,6 +218,11 @@ def folder_frames(cam_dir: Path, need_masks: bool = True) -> tuple[list[Path], l
     if not images:
         raise DatasetError(f"{img_dir}: no images")
     masks = list_images(cam_dir / "mask")
+    base = cam_dir if root is None else root
+    for path in images:
+        inside_root(base, path, str(img_dir), "image", path.name)
+    for path in masks:
+        inside_root(base, path, str(cam_dir / "mask"), "mask", path.name)
     if not masks:
         if need_masks:
             raise DatasetError(f"{cam_dir / 'mask'}: masks missing (one mask/*.png per image is needed)")
@@ -271,10 +305,11 @@ class OwliiDataset(DatasetReader):
 
     def _camera_folder(self, name: str) -> tuple[list, list[Path], list[Path]]:
         d = self.root / name
+        inside_root(self.root, d, str(self.root), "camera folder", name)
         if not d.is_dir():
             raise DatasetError(f"camera folder not found: {d}")
-        images, masks = folder_frames(d)
-        return neus_cameras(d / "cameras_sphere.npz", len(images), d), images, masks
+        images, masks = folder_frames(d, root=self.root)
+        return neus_cameras(d / "cameras_sphere.npz", len(images), d, self.root), images, masks
 
     def select_cameras(self, available: list[str]) -> list[str]:
         """Training camera folders (see ``n_views`` / ``train_cameras``)."""
@@ -290,7 +325,8 @@ class OwliiDataset(DatasetReader):
         centres = []
         for name in available:
             d = self.root / name
-            _, w2c, _ = neus_cameras(d / "cameras_sphere.npz", len(folder_frames(d)[0]), d)[0]
+            _, w2c, _ = neus_cameras(d / "cameras_sphere.npz", len(folder_frames(d, root=self.root)[0]), d,
+                                     self.root)[0]
             centres.append(-w2c[:3, :3].T @ w2c[:3, 3])
         return [available[i] for i in select_views(np.stack(centres), self.n_views, seed=self.view_seed)]
 

@@ -55,8 +55,8 @@ def texture_energy(root: Path | str, split: str = "train", erode: int = 2) -> di
     root = Path(root)
     json_path = root / f"transforms_{split}.json"
     energies, fractions = [], []
-    for frame in load_transforms(json_path)["frames"]:  # errors name the file and the field
-        path = resolve_image(root, frame["file_path"], json_path)
+    for i, frame in enumerate(load_transforms(json_path)["frames"]):  # errors name the file, frame and field
+        path = resolve_image(root, frame["file_path"], json_path, i)
         image = read_image(path).numpy()
         if image.shape[2] != 4:
             raise DatasetError(

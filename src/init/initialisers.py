@@ -61,16 +61,21 @@ class HullInit(Initialiser):
         if scene.is_dynamic and self.first_frame_only:
             frames = frames[:1]
         counts = [self.n_points // len(frames) + (i < self.n_points % len(frames)) for i in range(len(frames))]
-        return torch.cat([self._sample(n, [v for v in views if v.camera.frame_id == f], generator)
+        where = f"{scene.meta.get('root', scene.name)}: init=hull"
+        return torch.cat([self._sample(n, [v for v in views if v.camera.frame_id == f], generator,
+                                       f"{where}, frame {f}" if scene.is_dynamic else where)
                           for f, n in zip(frames, counts, strict=True) if n > 0])
 
-    def _sample(self, n: int, views: list, generator: torch.Generator) -> Tensor:
-        """[n, 3] points inside the visual hull of ``views`` (one frame's training views)."""
+    def _sample(self, n: int, views: list, generator: torch.Generator, where: str) -> Tensor:
+        """[n, 3] points inside the visual hull of ``views`` (one frame's training views).
+
+        Raises DatasetError (prefixed by ``where``) naming the views if their hull is empty or unbounded.
+        """
         lo = torch.full((3,), -self.box, dtype=torch.float64)
         hi = torch.full((3,), self.box, dtype=torch.float64)
         cams = [v.camera.to("cpu") for v in views]
         masks = [v.mask.cpu() for v in views]
-        return sample_hull(n, cams, masks, lo, hi, generator, self.threshold)
+        return sample_hull(n, cams, masks, lo, hi, generator, self.threshold, where=where)
 
 
 class BoxInit(Initialiser):
