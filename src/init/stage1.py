@@ -62,6 +62,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.method = str(cfg.stage1.get("method", "gs3d"))
         c.trainer.iterations = iterations
         c.capacity = None
+        c.sparse = None  # a sparse-view ingredient (conf/sparse/) is the second stage's, never the cached first stage's
         del c["stage1"]
     return c
 

@@ -18,6 +18,7 @@ from src.data.base import Scene, View
 from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 from src.rasterizer.base import Rasterizer
+from src.sparse.base import SparseIngredient
 from src.strategy.base import Strategy
 from src.trainer.guard import DivergenceError, DivergenceGuard
 from src.utils.record import atomic_write_bytes
@@ -172,10 +173,13 @@ class Trainer:
     @staticmethod
     def train_step(model: SplatModel, views: list[View], rasterizer: Rasterizer, loss_fn: Callable,
                    optimizer: SplatOptimizer, strategy: Strategy, guard: DivergenceGuard, it: int,
-                   generator: torch.Generator, background: torch.Tensor) -> dict:
+                   generator: torch.Generator, background: torch.Tensor, *,
+                   sparse: SparseIngredient | None = None) -> dict:
         """Render ``views``, back-propagate the loss, step the optimiser and the strategy.
 
         The loss is the objective's ``total`` plus the model's :meth:`SplatModel.regularisers`.
+        ``sparse`` (the ``sparse`` config group's ingredients) may change the splats rendered, add loss
+        terms (counted in the rasterizer's time) and change the model after the strategy.
         Returns dict(terms, renders, dens (strategy stats), psnr (mean over views), lrs, timing) where
         timing holds seconds spent in field (splat prediction), rasterizer (forward), backward and
         optimizer (optimiser + strategy).
@@ -185,17 +189,24 @@ class Trainer:
         lrs = optimizer.set_step(it)
         cams = [v.camera for v in views]
         splats = model.splats_for(cams)
+        if sparse is not None:
+            splats = sparse.train_splats(model, splats, it, generator)
         t1 = time.perf_counter()
         renders = [rasterizer.render(s, c, background) for s, c in zip(splats, cams, strict=True)]
         for r in renders:
             if r.means2d.requires_grad:
                 r.means2d.retain_grad()
+        extra = {} if sparse is None else sparse.loss_terms(model, views, renders, rasterizer, background, it,
+                                                            generator)
         t2 = time.perf_counter()
         terms = loss_fn(renders, views, splats, iteration=it)
         guard.check_loss(terms["total"], it)
         if not terms["total"].requires_grad:  # nothing of the model reached any rendered pixel
             raise DivergenceError(f"collapse: no splat is visible in the training view(s) "
                                   f"{[c.name for c in cams]} at iteration {it} (the loss has no gradient)")
+        if extra:
+            terms = {**terms, **extra, "total": terms["total"] + sum(extra.values())}
+            guard.check_loss(terms["total"], it)
         reg = model.regularisers(it)  # e.g. 4DGaussians' plane TV: terms of the model's parameters, not of renders
         if reg:
             terms = {**terms, **reg, "total": terms["total"] + sum(reg.values())}
@@ -207,6 +218,8 @@ class Trainer:
         optimizer.step()
         optimizer.zero_grad()
         dens = strategy.after_step(model, optimizer, it, generator)
+        if sparse is not None:
+            dens = {**dens, **sparse.after_step(model, optimizer, it, generator)}
         guard.check_splats(model.n_splats, it)
         t4 = time.perf_counter()
         psnr = sum(_mse_psnr(r.color, v.image) for r, v in zip(renders, views, strict=True)) / len(views)
@@ -218,12 +231,15 @@ class Trainer:
     def fit(self, model: SplatModel, scene: Scene, rasterizer: Rasterizer, loss_fn: Callable,
             make_optimizer: Callable[[SplatModel], SplatOptimizer], strategy: Strategy, run_dir: Path,
             generator: torch.Generator, seed: int = 0, curve: Callable[[SplatModel], float] | None = None,
-            curve_every: int = 0) -> dict:
+            curve_every: int = 0, sparse: SparseIngredient | None = None) -> dict:
         """Optimise ``model``; returns training statistics (train_s, iter_ms, timing split, ...).
 
         With ``curve`` and ``curve_every`` > 0, ``curve(model)`` (a held-out PSNR) is recorded every
         ``curve_every`` iterations and after the last one, as ``curve``: [{iteration, wall_s, psnr}],
         ``wall_s`` being the training time so far (the scoring itself is not counted).
+        ``sparse``: the training-free sparse-view ingredients applied in every step (:mod:`src.sparse`),
+        bound to the model, scene and rasterizer before a checkpoint is resumed; they keep no state of
+        their own (their randomness is ``generator``'s, which the checkpoint holds).
         """
         run_dir = Path(run_dir)
         ckpt_path = run_dir / "checkpoint.pt"
@@ -236,6 +252,8 @@ class Trainer:
         model.bind(scene)
         self.compile_networks(model)
         strategy.bind(scene, rasterizer)
+        if sparse is not None:
+            sparse.bind(model, scene, rasterizer, self.iterations)
         start = 0
         prev_train_s = 0.0
         resumed_timing: dict[str, float] = {}
@@ -292,7 +310,7 @@ class Trainer:
                 background = torch.rand(3, generator=generator).to(scene.background)
                 views = [v.on_background(background, scene.background) for v in views]
             step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
-                                   background)
+                                   background, **({} if sparse is None else {"sparse": sparse}))
             terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
             psnr_val = step["psnr"]
             if it > start:  # the first iteration includes one-off costs (JIT build, caches)

@@ -1,0 +1,77 @@
+"""The ``sparse`` config group: every option composes with 3DGS, Mip-Splatting and the main job and builds
+its recipe; ``sparse=none`` is empty; a two-stage run's first stage never gets the ingredient; each paper's
+experiment differs from ``gs3d`` only where it says."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+import src.run  # noqa: F401 - registers the ${repo:} resolver
+from src.init.stage1 import first_stage_config
+from src.sparse import SparseRecipe
+from src.utils.instantiate import build
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+OPTIONS = sorted(p.stem for p in (CONF / "sparse").glob("*.yaml"))
+METHODS = ["+experiment=gs3d", "+experiment=mip_splatting", "+experiment=splatfields3d_mip", None]
+
+
+def _compose(overrides: list[str]):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="config", overrides=[o for o in overrides if o])
+
+
+def test_the_default_is_no_ingredient():
+    cfg = _compose([])
+    recipe = build(cfg.sparse)
+    assert isinstance(recipe, SparseRecipe) and recipe.empty
+    assert "none" in OPTIONS and "dropout" in OPTIONS
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("option", OPTIONS)
+def test_every_option_composes_with_every_method_and_builds(option, method):
+    cfg = _compose([method, f"sparse={option}"])
+    recipe = build(cfg.sparse)
+    assert isinstance(recipe, SparseRecipe)
+    assert recipe.empty == (option == "none")
+    slots = {k for k, v in recipe.slots.items() if v is not None}
+    assert slots == {k for k, v in cfg.sparse.items() if k != "_target_" and v is not None}
+
+
+def test_a_slot_is_removed_with_null():
+    cfg = _compose(["+experiment=gs3d", "sparse=dropout", "sparse.dropout=null"])
+    assert build(cfg.sparse).empty
+
+
+def test_the_first_stage_of_a_two_stage_run_has_no_ingredient():
+    cfg = _compose(["+experiment=splatfields3d_mip", "sparse=dropout"])
+    assert cfg.sparse.dropout is not None
+    c1 = first_stage_config(cfg)
+    assert c1.sparse is None and c1.method == "mip_splatting"
+
+
+@pytest.mark.parametrize("experiment,option,changed", [
+    ("dropgaussian", "dropout", {"strategy.grad_threshold", "strategy.stop_iter"}),
+])
+def test_each_papers_experiment_is_gs3d_with_its_ingredient(experiment, option, changed):
+    exp = OmegaConf.to_container(_compose([f"+experiment={experiment}"]), resolve=False)
+    ref = OmegaConf.to_container(_compose(["+experiment=gs3d", f"sparse={option}"]), resolve=False)
+    assert exp["method"] == exp["experiment_name"] == experiment
+
+    def flat(d: dict, prefix: str = "") -> dict:
+        out = {}
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            out.update(flat(v, key + ".") if isinstance(v, dict) else {key: v})
+        return out
+
+    a, b = flat(exp), flat(ref)
+    diff = {k for k in a.keys() | b.keys() if a.get(k) != b.get(k)}
+    assert diff - {"method", "experiment_name", "loss.method", "model.method"} == changed
