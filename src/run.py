@@ -6,6 +6,7 @@ evaluates and writes the run record ``metrics.json`` (atomically, also when the 
 
 from __future__ import annotations
 
+import errno
 import logging
 import sys
 import time
@@ -24,8 +25,11 @@ from src.init.stage1 import ensure_first_stage
 from src.io.compressed import COMPRESSED_FILE
 from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
 from src.trainer.guard import DivergenceError, DivergenceGuard
+from src.trainer.identity import run_identity
 from src.trainer.trainer import CheckpointError
+from src.utils.hydra_cli import job_started, run_cli
 from src.utils.instantiate import ConfigError, build, check_targets
+from src.utils.interrupt import RunInterrupted, stop_on_signals
 from src.utils.memory import peak_memory_mb
 from src.utils.record import atomic_write_text, env_info, read_json, write_json
 from src.utils.runlock import RunDirLocked, RunLock
@@ -84,8 +88,23 @@ def hydra_context() -> dict:
     return {"choices": choices, "overrides": list(hc.overrides.task), "output_dir": hc.runtime.output_dir}
 
 
-#: Errors in what the user gave (config values, data files, checkpoints): one line, no traceback.
+class RunDirError(ConfigError):
+    """The run directory cannot be used: it holds another job, or it cannot be written (read-only, full)."""
+
+
+#: Errors in what the user gave (config values, data files, checkpoints, run dirs): one line, no traceback.
 INPUT_ERRORS = (ConfigError, ConfigValueError, DatasetError, CheckpointError, RunDirLocked)
+#: OS errors that mean the run directory cannot be written (not a bug of the run).
+_UNWRITABLE = (errno.EROFS, errno.ENOSPC, errno.EACCES, errno.EPERM, errno.EDQUOT, errno.ENOTDIR, errno.EEXIST)
+
+
+def unwritable(e: BaseException, run_dir: Path) -> RunDirError | None:
+    """A one-line :class:`RunDirError` for an OS error writing ``run_dir`` (read-only, full, no permission)."""
+    if not isinstance(e, OSError) or e.errno not in _UNWRITABLE:
+        return None
+    where = e.filename or run_dir
+    return RunDirError(f"{where}: cannot write the run directory {run_dir} ({e.strerror or e}); free space or "
+                       "choose a writable place with hydra.run.dir=... (paths.output_root for new runs)")
 
 
 def save_hydra_files(cfg: DictConfig, run_dir: Path) -> None:
@@ -114,9 +133,18 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     """
     ctx = hydra_context()
     run_dir = Path(run_dir or ctx["output_dir"] or cfg.paths.output_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    with RunLock(run_dir):
-        return _run_locked(cfg, run_dir, ctx)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        lock = RunLock(run_dir).acquire()
+    except OSError as e:
+        raise unwritable(e, run_dir) or e from None
+    try:
+        with stop_on_signals():
+            return _run_locked(cfg, run_dir, ctx)
+    except OSError as e:  # e.g. the disk filled up while writing a checkpoint: the last good one stays
+        raise unwritable(e, run_dir) or e from None
+    finally:
+        lock.release()
 
 
 def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
@@ -129,7 +157,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     if previous and ctx["output_dir"] is not None and previous.get("overrides") is not None:
         before, now = _identity_overrides(previous["overrides"]), _identity_overrides(ctx["overrides"])
         if before != now:
-            raise RuntimeError(
+            raise RunDirError(
                 f"{run_dir} holds another run (overrides {before}); this job has {now}. Re-use a run/sweep "
                 "dir only with the same command; to extend a sweep use a new hydra.sweep.dir and pass both "
                 "directories to src.tables.")
@@ -141,9 +169,6 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     # src/utils/record.py); the run dir belongs to this job alone, so drop such leftovers.
     for stale in run_dir.glob(".*.tmp"):
         stale.unlink(missing_ok=True)
-    device = resolve_device(cfg.device)
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
     record: dict = {
         "status": "running", "error": None, "reason": None,
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
@@ -154,7 +179,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
                  # resolved: sweeps copy swept values into the keys, e.g. ${schedule.max_splats}
                  **OmegaConf.to_container(cfg.get("extra_keys", {}), resolve=True)},
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
-        "env": env_info(device), "run_dir": str(run_dir),
+        "env": env_info(cfg.device), "run_dir": str(run_dir),
     }
     if ctx["output_dir"] is not None:
         save_hydra_files(cfg, run_dir)
@@ -165,6 +190,10 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     try:
         check_targets(cfg)  # every _target_ at every depth, before anything is built
         validate_run_config(cfg)
+        device = resolve_device(cfg.device)
+        record["env"] = env_info(device)
+        if cfg.get("threads"):
+            torch.set_num_threads(int(cfg.threads))
         generator = seed_everything(cfg.seed)
         dataset = build(cfg.dataset)
         scene = dataset.load()
@@ -229,14 +258,38 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     except INPUT_ERRORS as e:
         record.update(status="failed", reason=f"invalid input: {e}", error=f"{type(e).__name__}: {e}")
         raise
+    except RunInterrupted as e:
+        e.reason = interruption_reason(e, run_dir / "checkpoint.pt")
+        record.update(status="interrupted", reason=e.reason, error=str(e),
+                      interrupted={"signal": e.name, "checkpoint_iteration": e.checkpoint_iteration})
+        raise
     except BaseException as e:
-        record.update(status="failed", error=f"{type(e).__name__}: {e}",
+        bad_dir = unwritable(e, run_dir)
+        if bad_dir is not None:
+            record.update(status="failed", reason=f"invalid input: {bad_dir}", error=f"RunDirError: {bad_dir}")
+            raise bad_dir from None
+        record.update(status="failed", reason=f"{type(e).__name__}: {str(e)[:300]}", error=f"{type(e).__name__}: {e}",
                       traceback=traceback.format_exc(limit=20))
         raise
     finally:
         record["wall_s"] = time.perf_counter() - t0
-        write_json(metrics_path, record)
+        try:
+            write_json(metrics_path, record)
+        except OSError as e:  # a full or read-only disk: the record from the start of the run stays
+            log.error("could not update %s (%s)", metrics_path, e)
     return record
+
+
+def interruption_reason(e: RunInterrupted, ckpt: Path) -> str:
+    """``interrupted by SIGTERM; checkpoint at iteration N (...)``: what the record says of a stopped run."""
+    done = e.checkpoint_iteration
+    if done is None and ckpt.is_file():
+        try:
+            done = int(torch.load(ckpt, map_location="cpu", weights_only=True)["iteration"]) + 1
+        except Exception:
+            done = None
+    where = f"checkpoint at iteration {done} ({ckpt})" if done is not None else "no checkpoint in this run dir"
+    return f"interrupted by {e.name}; {where}; re-run the same command to resume"
 
 
 def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, generator: torch.Generator):
@@ -267,6 +320,7 @@ def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, gener
         return optimizer_for(m, lambda groups: optim_factory(groups=groups, extent=scene.extent))
 
     trainer = build(cfg.trainer)
+    trainer.identity = run_identity(cfg, scene)  # checkpoints carry it; a resume of another run is refused
     scorer = build(cfg.eval).curve_scorer(scene, rasterizer) if cfg.eval.get("curve_every") else None
     stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir, generator, seed=cfg.seed,
                         curve=scorer[1] if scorer else None, curve_every=int(cfg.eval.get("curve_every") or 0),
@@ -337,6 +391,7 @@ def main(cfg: DictConfig) -> float | None:
 
     In a sweep (``--multirun``) a failed run is recorded and the sweep goes on.
     """
+    job_started()  # Hydra composed the config: stderr is no longer held (src/utils/hydra_cli.py)
     single = _run_mode() == RunMode.RUN
     try:
         record = run(cfg)
@@ -345,6 +400,9 @@ def main(cfg: DictConfig) -> float | None:
             raise
         print(f"error: {e}", file=sys.stderr)  # one line, no traceback (the record holds the error too)
         sys.exit(2)
+    except RunInterrupted as e:  # stops a sweep too; the record says where the checkpoint is
+        print(f"\n{getattr(e, 'reason', e)}", file=sys.stderr)
+        sys.exit(128 + e.signum)
     if single:
         print_summary(record, Path(record.get("run_dir", ".")))
         if record.get("status") != "ok":
@@ -353,4 +411,4 @@ def main(cfg: DictConfig) -> float | None:
 
 
 if __name__ == "__main__":
-    main()
+    run_cli(main)

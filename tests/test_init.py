@@ -56,6 +56,7 @@ def test_from_run_select_opacity_keeps_the_most_opaque_first_stage_splats(scene,
 def test_an_unknown_query_selection_is_refused_before_the_run():
     from hydra import compose, initialize_config_module
 
+    import src.run  # noqa: F401 - registers the config resolvers (if_at_most, ...) the composed config uses
     from src.utils.validate import ConfigValueError, validate_run_config
 
     with initialize_config_module("conf", version_base="1.3"):

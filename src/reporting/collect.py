@@ -16,7 +16,7 @@ from typing import Any
 
 import yaml
 
-STATUSES = ("ok", "failed", "running")
+STATUSES = ("ok", "failed", "running", "interrupted")
 # Keys an "ok" record must have; failed/running records only need "status".
 REQUIRED_WHEN_OK = ("method", "keys", "metrics")
 # Expected types of the keys when present (None allowed for the message fields).
@@ -172,11 +172,20 @@ def read_report_block(sweep_dir: Path) -> dict[str, Any] | None:
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise RecordError(f"cannot read YAML: {exc}") from exc
+        raise RecordError(f"cannot read YAML: {_yaml_error_line(exc)}") from exc
     block = data.get("report") if isinstance(data, dict) else None
     if block is not None and not isinstance(block, dict):
         raise RecordError(f"'report' is {type(block).__name__}, expected a mapping")
     return block
+
+
+def _yaml_error_line(exc: Exception) -> str:
+    """A YAML (or reading) error on one line: the problem and where it is, without the quoted source."""
+    if isinstance(exc, yaml.MarkedYAMLError) and exc.problem:
+        mark = exc.problem_mark
+        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+        return f"{exc.problem}{where}"
+    return " ".join(str(exc).split())
 
 
 def collect(sweep_dirs: Sequence[str | Path]) -> Collection:

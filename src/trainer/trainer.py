@@ -21,6 +21,8 @@ from src.rasterizer.base import Rasterizer
 from src.sparse.base import SparseIngredient
 from src.strategy.base import Strategy
 from src.trainer.guard import DivergenceError, DivergenceGuard
+from src.trainer.identity import mismatch, shape_mismatch
+from src.utils.interrupt import RunInterrupted, set_deferred, stop_requested
 from src.utils.record import atomic_write_bytes
 from src.utils.validate import compile_backend
 
@@ -92,6 +94,7 @@ class Trainer:
         self.guard_cfg = dict(guard or {})
         self.compile = compile_backend(compile)
         self.random_background = bool(random_background)
+        self.identity: dict | None = None  # the run's identity, stored in and checked against checkpoints
 
     # -- torch.compile -----------------------------------------------------------------------
     def compile_networks(self, model: SplatModel) -> list[str]:
@@ -124,11 +127,13 @@ class Trainer:
     # -- checkpoints -------------------------------------------------------------------------
     @staticmethod
     def save_checkpoint(path: Path, model: SplatModel, optimizer: SplatOptimizer, strategy: Strategy,
-                        iteration: int, rng: random.Random, generator: torch.Generator, extra: dict) -> None:
+                        iteration: int, rng: random.Random, generator: torch.Generator, extra: dict,
+                        identity: dict | None = None) -> None:
         """Write ``path`` atomically, holding only what ``torch.load(weights_only=True)`` reads back.
 
         Tensors, numbers, strings, None and dicts / lists / tuples of them: the RNG states are stored
         as such (numpy's legacy state as a dict with a tensor of keys), so loading runs no code.
+        ``identity`` (:func:`src.trainer.identity.run_identity`) says which run the checkpoint belongs to.
         """
         import io
 
@@ -137,6 +142,7 @@ class Trainer:
             "iteration": iteration, "model": model.state_dict(), "optimizer": optimizer.state_dict(),
             "strategy": strategy.state_dict(), "py_rng": rng.getstate(), "torch_rng": torch.get_rng_state(),
             "np_rng": numpy_rng_state(), "generator": generator.get_state(), "extra": extra,
+            "identity": identity, "n_splats": model.n_splats,
         }, buf)
         atomic_write_bytes(path, buf.getvalue())
 
@@ -154,6 +160,19 @@ class Trainer:
             raise CheckpointError(f"{path}: not a checkpoint of this project (missing {missing}); to start fresh "
                                   "and keep it aside, re-run with trainer.resume=false")
         return ck
+
+    def check_identity(self, path: Path, ck: dict, model: SplatModel) -> None:
+        """Refuse, in one line, a checkpoint of another run (experiment, model, scene, config or shapes).
+
+        Checked only when the trainer knows its run (``self.identity``, set by ``src.run.fit_scene``).
+        """
+        if self.identity is None:
+            return
+        why = mismatch(ck.get("identity"), self.identity) or shape_mismatch(
+            ck["model"], model.state_dict(), int(ck.get("n_splats", -1)), model.n_splats)
+        if why:
+            raise CheckpointError(f"{path} belongs to another run: {why}; to train this run from scratch "
+                                  "(keeping that checkpoint aside), re-run with trainer.resume=false")
 
     @staticmethod
     def set_aside(path: Path) -> Path | None:
@@ -263,7 +282,13 @@ class Trainer:
             self.set_aside(ckpt_path)
         elif ckpt_path.is_file():
             ck = self.load_checkpoint(ckpt_path)
-            model.load_state_dict(ck["model"])
+            self.check_identity(ckpt_path, ck, model)
+            try:
+                model.load_state_dict(ck["model"])
+            except (RuntimeError, KeyError) as e:  # a layout the identity did not tell apart
+                raise CheckpointError(f"{ckpt_path}: its model state does not fit this model "
+                                      f"({str(e).splitlines()[0][:200]}); to start fresh and keep it aside, "
+                                      "re-run with trainer.resume=false") from None
             optimizer = make_optimizer(model)
             try:
                 optimizer.load_state_dict(ck["optimizer"])
@@ -303,6 +328,7 @@ class Trainer:
                    desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
         psnr_val = math.nan
         groups = self.views_by_frame(scene)
+        deferred_before = set_deferred(True)  # a signal now stops the loop between steps (src/utils/interrupt.py)
         for it in bar:
             views = strategy.step_views(model, self.sample_views(groups, rng), it, generator)
             background = scene.background
@@ -342,12 +368,19 @@ class Trainer:
                     writer.add_scalar("heldout/psnr", value, it)
                 t_start += time.perf_counter() - t_curve  # the scoring is not training time
             if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
-                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra())
+                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra(),
+                                     self.identity)
+            if stop_requested() is not None:  # SIGINT / SIGTERM: stop after a whole step, resumable from here
+                bar.close()
+                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra(),
+                                     self.identity)
+                raise RunInterrupted(stop_requested(), it + 1)
+        set_deferred(deferred_before)
         bar.close()
         train_s = prev_train_s + time.perf_counter() - t_start
         if self.iterations > start:
             self.save_checkpoint(ckpt_path, model, optimizer, strategy, self.iterations - 1, rng, generator,
-                                 {**ckpt_extra(), "train_s": train_s})
+                                 {**ckpt_extra(), "train_s": train_s}, self.identity)
         if writer is not None:
             writer.close()
         n = max(n_timed, 1)

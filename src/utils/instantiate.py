@@ -19,6 +19,7 @@ import inspect
 from collections.abc import Iterator
 from typing import Any
 
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -170,4 +171,25 @@ def build(cfg: DictConfig | dict, **kwargs: Any) -> Any:
     check_targets(cfg, root=str(name))
     if isinstance(cfg, dict):
         cfg = OmegaConf.create(cfg)
-    return instantiate(cfg, _convert_="all", **kwargs)
+    try:
+        return instantiate(cfg, _convert_="all", **kwargs)
+    except InstantiationException as e:
+        cause = _project_error(e)
+        if cause is None:
+            raise
+        raise cause from None  # the component's own one-line message, not Hydra's four-line wrapper
+
+
+def _project_error(e: BaseException) -> ValueError | None:
+    """The first ``ValueError`` defined in the project (e.g. ``DatasetError``) in ``e``'s cause chain, or None.
+
+    Such errors describe what the user gave (a missing dataset root, a malformed file): they keep their
+    one-line message when a component raises them while Hydra builds it.
+    """
+    seen: set[int] = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, ValueError) and type(e).__module__.split(".")[0] == PROJECT_PACKAGE:
+            return e
+        e = e.__cause__ or e.__context__
+    return None

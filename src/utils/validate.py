@@ -70,7 +70,8 @@ def validate_run_config(cfg: DictConfig) -> None:
     Iterations > 0; every learning rate (``optim.lr.<group>.init`` / ``final``) > 0; splat budgets
     (``init.n_points``, ``strategy.max_splats``, ``schedule.*``) > 0; ``dataset.n_views`` >= 1;
     ``dataset.downscale`` > 0; ``trainer.views_per_step`` >= 1; ``trainer.compile`` a known backend;
-    ``init.select`` one of :data:`QUERY_SELECT`; ``trainer.random_background`` a boolean.
+    ``init.select`` one of :data:`QUERY_SELECT`; ``trainer.random_background`` a boolean; ``seed`` an
+    integer >= 0; ``threads`` null or a positive integer.
     """
     compile_backend(OmegaConf.select(cfg, "trainer.compile", default=None))
     select = OmegaConf.select(cfg, "init.select", default="random")
@@ -96,5 +97,7 @@ def validate_run_config(cfg: DictConfig) -> None:
     for key in ("schedule.init_points", "schedule.max_splats", "init.n_points", "strategy.max_splats"):
         _require(cfg, key, integer=True)
     _require(cfg, "dataset.n_views", integer=True)
+    _require(cfg, "seed", integer=True, allow_null=False, minimum=0)
+    _require(cfg, "threads", integer=True)  # null: torch's default; 0 or less has no meaning
     for key in ("dataset.downscale", "dataset.image_scale"):
         _require(cfg, key)
