@@ -31,7 +31,7 @@ def test_the_default_is_no_ingredient():
     cfg = _compose([])
     recipe = build(cfg.sparse)
     assert isinstance(recipe, SparseRecipe) and recipe.empty
-    assert "none" in OPTIONS and "dropout" in OPTIONS
+    assert {"none", "dropout", "opacity_decay", "dropout_decay"} <= set(OPTIONS)
 
 
 @pytest.mark.parametrize("method", METHODS)
