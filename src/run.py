@@ -54,6 +54,8 @@ def if_at_most(n: int | None, limit: int, then, otherwise):
 
 if not OmegaConf.has_resolver("if_at_most"):
     OmegaConf.register_new_resolver("if_at_most", if_at_most)
+if not OmegaConf.has_resolver("times"):  # a schedule scaled with its budget (sweeps/fair_budget.yaml)
+    OmegaConf.register_new_resolver("times", lambda a, b: int(round(float(a) * float(b))))
 
 
 def resolve_device(name: str) -> torch.device:
