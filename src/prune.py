@@ -18,7 +18,7 @@ chosen set). Static scenes only.
 from __future__ import annotations
 
 import argparse
-import sys
+import math
 from pathlib import Path
 
 import torch
@@ -29,8 +29,8 @@ from src.data.base import View
 from src.eval.evaluator import views_psnr
 from src.io.ply import read_ply, write_ply
 from src.strategy.significance import splat_set_significance
-from src.utils.instantiate import build
-from src.utils.record import write_json
+from src.utils.instantiate import ConfigError, build
+from src.utils.record import USAGE_ERROR, OneLineParser, cli_error, os_error_line, write_json
 
 DEFAULT_KEEP = (0.5, 0.25, 0.1)
 
@@ -40,6 +40,9 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     """Significance-prune one run's ``splats.ply`` at each keep fraction; returns the ``pruning.json`` record."""
     import src.run  # noqa: F401 - registers the resolvers the saved config uses
 
+    if not run_dir.is_dir():
+        found = "is a file" if run_dir.exists() else "does not exist"
+        raise FileNotFoundError(f"{run_dir}: {found}; expected a finished run directory of src.run")
     cfg_path, ply_path = run_dir / ".hydra" / "config.yaml", run_dir / "splats.ply"
     for p in (cfg_path, ply_path):
         if not p.is_file():
@@ -52,11 +55,14 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
                          f"{str(e).splitlines()[0] if str(e) else ''})") from e
     if missing:
         raise ValueError(f"{cfg_path}: run config lacks {', '.join(missing)} (not written by src.run?)")
-    scene = build(cfg.dataset).load()
+    splats = read_ply(ply_path).splats  # a malformed or non-finite file fails before the scene loads
+    try:
+        scene = build(cfg.dataset).load()
+        rasterizer = build(cfg.rasterizer)
+    except ConfigError as e:
+        raise ValueError(f"{cfg_path}: {e}") from e
     if scene.is_dynamic:
         raise ValueError(f"{run_dir}: pruning a baked splat set is defined for static scenes only")
-    rasterizer = build(cfg.rasterizer)
-    splats = read_ply(ply_path).splats
     bg = scene.background
     q = bool(OmegaConf.select(cfg, "eval.quantise", default=True))  # the run's evaluation protocol
 
@@ -85,34 +91,62 @@ def prune_run(run_dir: Path, keeps: list[float], max_loss_db: float, write: bool
     return record
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m src.prune", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def keep_fractions(text: str) -> list[float]:
+    """``--keep``: comma-separated fractions in (0, 1)."""
+    try:
+        keeps = [float(k) for k in text.split(",") if k.strip()]
+    except ValueError:
+        keeps = []
+    if not keeps or not all(0.0 < k < 1.0 for k in keeps):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected comma-separated fractions in (0, 1), e.g. 0.5,0.25")
+    return keeps
+
+
+def non_negative(text: str) -> float:
+    """A finite number of 0 or more (``--max-loss-db``, ``--volume-power``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a finite number of 0 or more")
+    return value
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command-line arguments (see ``--help``); a bad one exits with one line and code 2."""
+    ap = OneLineParser(prog="python -m src.prune", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", type=Path, help="finished run directories (with splats.ply, .hydra/)")
-    ap.add_argument("--keep", default=",".join(map(str, DEFAULT_KEEP)), help="fractions of splats to keep")
-    ap.add_argument("--max-loss-db", type=float, default=0.2,
+    ap.add_argument("--keep", type=keep_fractions, default=list(DEFAULT_KEEP),
+                    help="fractions of splats to keep, comma-separated (default: 0.5,0.25,0.1)")
+    ap.add_argument("--max-loss-db", type=non_negative, default=0.2,
                     help="largest training-view PSNR loss (dB) the chosen model may cost")
     ap.add_argument("--write", action="store_true", help="also write the chosen set as splats_pruned.ply")
-    ap.add_argument("--volume-power", type=float, default=0.1,
+    ap.add_argument("--volume-power", type=non_negative, default=0.1,
                     help="exponent of the volume term of the significance (LightGaussian: 0.1)")
-    args = ap.parse_args(argv)
-    keeps = [float(k) for k in args.keep.split(",") if k]
-    if not keeps or not all(0.0 < k < 1.0 for k in keeps):
-        ap.error(f"--keep: fractions in (0, 1) expected, got {args.keep!r}")
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Prune each run; exit code 0, or 2 if a run could not be used (one line naming its file on stderr)."""
+    args = parse_args(argv)
     print(f"{'run':<40} {'keep':>5} {'splats':>7} {'train dB':>9} {'test dB':>8} {'test loss':>9}")
     failed = 0
     for run in args.runs:
         try:
-            rec = prune_run(run, keeps, args.max_loss_db, args.write, args.volume_power)
-        except (FileNotFoundError, ValueError) as e:
-            print(f"{run!s:<40} error: {e}", file=sys.stderr)
-            failed += 1
+            rec = prune_run(run, args.keep, args.max_loss_db, args.write, args.volume_power)
+        except ValueError as e:
+            failed += cli_error(str(e))
+            continue
+        except OSError as e:
+            failed += cli_error(os_error_line(e))
             continue
         for r in rec["rows"]:
             mark = " <- chosen" if r is rec["chosen"] else ""
             print(f"{'/'.join(run.parts[-3:])[-40:]:<40} {r['keep']:>5.2f} {r['n_splats']:>7} {r['psnr_train']:>9.2f} "
                   f"{r['psnr']:>8.2f} {r.get('test_loss_db', 0.0):>9.2f}{mark}")
-    return 1 if failed else 0
+    return USAGE_ERROR if failed else 0
 
 
 if __name__ == "__main__":

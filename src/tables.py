@@ -7,8 +7,9 @@ A bare ``--out`` writes to ``sweeps/results/<sweep name>/`` (the name of the swe
 read from its ``multirun.yaml``), the place where the current result of each sweep is kept.
 Conventions and the record contract: :mod:`src.reporting`.
 
-Exit codes: 0 success; 1 the chart could not be drawn; 2 bad usage or nothing to tabulate (a sweep
-directory missing, without any metrics.json, or with no readable record).
+Exit codes: 0 success; 2 bad usage or nothing to tabulate or chart (a sweep directory missing,
+without any metrics.json, or with no readable record; an output folder that cannot be written or that
+another ``src.tables`` is writing into: one writer per folder), with one line on stderr.
 """
 
 from __future__ import annotations
@@ -16,17 +17,21 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from src.reporting import load, make_tables, resolve_spec
-from src.reporting.aggregate import build_report
-from src.reporting.collect import find_metrics_files
+from src.reporting.aggregate import ReportSpec, build_report
+from src.reporting.collect import Collection, find_metrics_files
 from src.reporting.render import FORMATS, render
-from src.utils.record import atomic_write_text
+from src.utils.record import OneLineParser, OutputBusy, atomic_write_text, cli_error, os_error_line, output_lock
+
+if TYPE_CHECKING:
+    from src.reporting.chart import ChartData
 
 __all__ = ["main", "make_tables"]
 
@@ -59,7 +64,7 @@ def _csv_list(text: str) -> tuple[str, ...]:
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """Command-line arguments (see ``--help``)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="python -m src.tables",
         description="Aggregate metrics.json files of Hydra sweeps into paper-style tables.",
     )
@@ -120,30 +125,66 @@ def unknown_keys(records: Sequence, spec) -> str | None:
     return None
 
 
+def check_sweep_dirs(sweep_dirs: Sequence[Path]) -> str | None:
+    """A one-line message for the first sweep directory that is missing, a file, or holds no metrics.json."""
+    for sweep_dir in sweep_dirs:
+        if not sweep_dir.exists():
+            return f"{sweep_dir}: no such directory; expected a sweep directory (holding **/metrics.json)"
+        if not sweep_dir.is_dir():
+            return f"{sweep_dir}: is a file; expected a sweep directory (holding **/metrics.json)"
+        if not find_metrics_files(sweep_dir):
+            return f"no metrics.json under {sweep_dir} (empty or unfinished sweep?); expected run directories"
+    return None
+
+
+def unreadable(collection: Collection) -> str:
+    """The message when none of the records could be read: the count and the first file's problem."""
+    first = collection.problems[0] if collection.problems else "no problem recorded"
+    what = ("the only metrics.json could not be read" if collection.n_files == 1
+            else f"none of the {collection.n_files} metrics.json files could be read, first")
+    return (f"{what}: {first}; expected run records: JSON objects with 'status' "
+            "(and 'method', 'keys', 'metrics' when ok)")
+
+
+def write_outputs(args: argparse.Namespace, text: str, collection: Collection, spec: ReportSpec,
+                  chart: ChartData | None) -> None:
+    """Print ``text``; write ``table.<format>`` into ``args.out`` and the charts, holding the folder's lock.
+
+    Raises:
+        OutputBusy: another process writes into the output folder (nothing was printed or written).
+        OSError: a file cannot be written.
+    """
+    out_dir = args.out or (args.sweep_dirs[0] if chart is not None else None)
+    with output_lock(out_dir, "choose another --out") if out_dir is not None else nullcontext():
+        print(text, end="")
+        if args.out is not None:
+            path = args.out / f"table.{args.format}"
+            atomic_write_text(path, text)
+            print(f"wrote {path}", file=sys.stderr)
+        if chart is not None:
+            from src.reporting.chart import draw_chart, make_curves
+
+            paths = draw_chart(chart, out_dir) + make_curves(collection.records, spec, out_dir)
+            for path in paths:
+                print(f"wrote {path}")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code."""
     args = parse_args(argv)
-    for sweep_dir in args.sweep_dirs:
-        if not sweep_dir.is_dir():
-            print(f"error: {sweep_dir} is not a directory", file=sys.stderr)
-            return 2
-        if not find_metrics_files(sweep_dir):
-            print(f"error: no metrics.json under {sweep_dir} (empty or unfinished sweep?)", file=sys.stderr)
-            return 2
-
+    problem = check_sweep_dirs(args.sweep_dirs)
+    if problem:
+        return cli_error(problem)
     if args.out == _DEFAULT_OUT:
         args.out = default_out(args.sweep_dirs)
         if args.out is None:
-            print("error: a bare --out needs sweep directories of one named sweep (multirun.yaml); "
-                  "pass --out DIR", file=sys.stderr)  # fmt: skip
-            return 2
+            return cli_error("a bare --out needs sweep directories of one named sweep (multirun.yaml); pass --out DIR")
 
     collection = load(args.sweep_dirs)
-    for problem in collection.problems:
-        print(f"skipped {problem}", file=sys.stderr)
     if not collection.records:
-        print(f"error: none of the {collection.n_files} metrics.json files could be read", file=sys.stderr)
-        return 2
+        return cli_error(unreadable(collection))
+    for skipped in collection.problems:
+        print(f"skipped {skipped}", file=sys.stderr)
     try:
         spec = resolve_spec(None, collection).with_overrides(
             rows=args.rows, cols=args.cols, metrics=args.metrics, quoted=args.quoted
@@ -151,31 +192,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.no_quoted:
             spec = replace(spec, quoted=None)
     except ValueError as exc:
-        print(f"error: bad report block: {exc}", file=sys.stderr)
-        return 2
+        return cli_error(f"bad report block: {exc}")
     unknown = unknown_keys(collection.records, spec)
     if unknown:
-        print(f"error: {unknown}", file=sys.stderr)
-        return 2
+        return cli_error(unknown)
 
     text = render(build_report(collection.records, spec, collection.problems), args.format)
-    print(text, end="")
-    if args.out is not None:
-        path = args.out / f"table.{args.format}"
-        atomic_write_text(path, text)
-        print(f"wrote {path}", file=sys.stderr)
+    chart = None
     if args.chart:
-        from src.reporting.chart import make_chart, make_curves  # matplotlib only when charting
+        from src.reporting.chart import chart_data, drawable_qualities  # matplotlib only when charting
 
-        out_dir = args.out or args.sweep_dirs[0]
+        chart = chart_data(collection.records, spec)
         try:
-            paths = make_chart(collection.records, spec, out_dir)
+            drawable_qualities(chart)
         except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-        paths += make_curves(collection.records, spec, out_dir)
-        for path in paths:
-            print(f"wrote {path}")
+            return cli_error(f"--chart: {exc}")
+    try:
+        write_outputs(args, text, collection, spec, chart)
+    except OutputBusy as exc:
+        return cli_error(str(exc))
+    except OSError as exc:
+        return cli_error(f"cannot write the output: {os_error_line(exc)}")
     return 0
 
 

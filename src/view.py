@@ -29,6 +29,7 @@ import torch
 from src.core.splats import Splats
 from src.fields.flows import quat_to_rotmat_wxyz
 from src.io.ply import BAKED_PLY, FRAMES_DIR, FRAMES_INDEX, BakedFrame, read_baked_frames, read_ply
+from src.utils.record import USAGE_ERROR, OneLineParser, cli_error, os_error_line
 
 INSTALL_HINT = 'pip install -e ".[viewer]"'
 _UP = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
@@ -36,7 +37,15 @@ _UP = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y
 
 
 class ViewerError(RuntimeError):
-    """A run directory (or the environment) the viewer cannot show; the message names the path."""
+    """A run directory or argument the viewer cannot use; the message names the path or the flag."""
+
+    exit_code = USAGE_ERROR
+
+
+class ViewerUnavailable(ViewerError):
+    """The environment lacks the viewer (viser); the message says how to install it."""
+
+    exit_code = 1
 
 
 @dataclass
@@ -74,6 +83,8 @@ def find_run_splats(run_dir: Path | str) -> RunSplats:
         frames = read_baked_frames(run_dir)
     except ValueError as e:
         raise ViewerError(str(e)) from e
+    except OSError as e:
+        raise ViewerError(os_error_line(e)) from e
     static = run_dir / BAKED_PLY
     if not frames and not static.is_file():
         status = f" (its metrics.json says status {record.get('status')!r})" if isinstance(record, dict) else ""
@@ -120,8 +131,8 @@ def import_viser() -> Any:
     try:
         import viser
     except ImportError as e:
-        raise ViewerError(f"the viewer needs viser, which is not installed ({e}); install it with: {INSTALL_HINT}") \
-            from e
+        raise ViewerUnavailable(f"the viewer needs viser, which is not installed ({e}); install it with: "
+                                f"{INSTALL_HINT}") from e
     return viser
 
 
@@ -137,7 +148,6 @@ class SplatViewer:
 
     def __init__(self, run: RunSplats, host: str = "127.0.0.1", port: int = 8080, frame: int | None = None,
                  up: str = "+z") -> None:
-        viser = import_viser()
         self.run = run
         self._lock = threading.Lock()
         self._cache: dict[int, dict[str, np.ndarray]] = {}
@@ -152,8 +162,12 @@ class SplatViewer:
                 raise ViewerError(f"{run.root / FRAMES_DIR / FRAMES_INDEX}: no frame {frame}; baked frames: "
                                   f"{', '.join(map(str, ids))}")
             start = ids.index(frame)
-        first = self._arrays(start)  # read before the server starts: a bad file fails fast
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        first = self._arrays(start)  # read before anything starts: a bad file fails fast
+        viser = import_viser()
+        try:
+            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        except OSError as e:
+            raise ViewerError(f"--host {host} --port {port}: cannot listen there ({os_error_line(e)})") from e
         self.server.scene.set_up_direction(up)
         position, look_at = initial_view(first["centers"], _UP[up])
         self.server.initial_camera.position = position
@@ -184,7 +198,9 @@ class SplatViewer:
             path = self._path(index)
             try:
                 self._cache[index] = viser_arrays(read_ply(path).splats)
-            except (FileNotFoundError, ValueError) as e:
+            except OSError as e:
+                raise ViewerError(str(e) if str(path) in str(e) else os_error_line(e)) from e
+            except ValueError as e:
                 raise ViewerError(str(e) if str(path) in str(e) else f"{path}: {e}") from e
         return self._cache[index]
 
@@ -230,22 +246,44 @@ class SplatViewer:
         self.server.stop()
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Command line: serve RUN_DIR's splats until Ctrl+C; 1 (with a message naming the path) on errors."""
-    ap = argparse.ArgumentParser(prog="python -m src.view", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def _port(text: str) -> int:
+    """``--port``: an integer in [0, 65535] (0: any free port)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number; expected an integer in 0..65535") \
+            from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is out of range; expected 0..65535 (0: any free port)")
+    return port
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command-line arguments (see ``--help``); a bad one exits with one line and code 2."""
+    ap = OneLineParser(prog="python -m src.view", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run_dir", type=Path, help="a run directory (with splats.ply or frames/) or a .ply file")
-    ap.add_argument("--port", type=int, default=8080, help="port to listen on (the next free one if taken; 0 = any)")
+    ap.add_argument("--port", type=_port, default=8080,
+                    help="port to listen on (the next free one if taken; 0 = any)")
     ap.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all interfaces)")
     ap.add_argument("--frame", type=int, default=None, help="frame id to show first (dynamic runs)")
     ap.add_argument("--up", choices=sorted(_UP), default="+z", help="world up axis of the scene (default +z)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line: serve RUN_DIR's splats until Ctrl+C.
+
+    Exit codes: 0 after Ctrl+C; 2 an unusable run directory, splat file or argument (one line naming
+    it); 1 the viewer is not installed.
+    """
+    args = parse_args(argv)
     try:
         run = find_run_splats(args.run_dir)
         viewer = SplatViewer(run, host=args.host, port=args.port, frame=args.frame, up=args.up)
     except ViewerError as e:
-        print(f"src.view: error: {e}", file=sys.stderr)
-        return 1
+        cli_error(str(e))
+        return e.exit_code
     what = (f"{len(run.frames)} frames from {run.root / FRAMES_DIR}" if run.dynamic else str(run.static))
     if not run.dynamic and (run.record or {}).get("per_frame") is not None:
         what += (f" (dynamic run without {FRAMES_DIR}/{FRAMES_INDEX}: showing the splat set baked at time 0)")

@@ -45,7 +45,7 @@ def test_chosen_model_respects_the_training_view_loss_bound(smoke_run):
 
 
 def test_cli_names_a_missing_run_file(tmp_path, capsys):
-    assert main([str(tmp_path)]) == 1
+    assert main([str(tmp_path)]) == 2
     assert "config.yaml: missing" in capsys.readouterr().err
 
 
@@ -55,6 +55,6 @@ def test_cli_names_a_malformed_run_config(tmp_path, capsys, text, expected):
     (tmp_path / ".hydra").mkdir()
     (tmp_path / ".hydra" / "config.yaml").write_text(text)
     (tmp_path / "splats.ply").write_bytes(b"ply\n")
-    assert main([str(tmp_path)]) == 1
+    assert main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "config.yaml" in err and expected in err and len(err.strip().splitlines()) == 1

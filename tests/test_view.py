@@ -64,10 +64,10 @@ def _dynamic_run(root: Path) -> Path:
 # -- without a browser -------------------------------------------------------------------------
 
 def test_missing_run_dir_and_missing_ply_are_named(tmp_path, capsys):
-    assert main([str(tmp_path / "nope")]) == 1
+    assert main([str(tmp_path / "nope")]) == 2
     assert f"{tmp_path / 'nope'}: no such run directory" in capsys.readouterr().err
     (tmp_path / "metrics.json").write_text(json.dumps({"status": "failed"}))
-    assert main([str(tmp_path)]) == 1
+    assert main([str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert f"{tmp_path}: no splats.ply and no frames/frames.json" in err and "'failed'" in err
 
@@ -85,12 +85,12 @@ def test_malformed_ply_and_bad_frame_are_named(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     (run / "splats.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
-    assert main([str(run), "--port", "0"]) == 1
+    assert main([str(run), "--port", "0"]) == 2
     assert f"{run / 'splats.ply'}: missing vertex property 'y'" in capsys.readouterr().err
     dyn = _dynamic_run(tmp_path / "dyn")
-    assert main([str(dyn), "--frame", "7", "--port", "0"]) == 1
+    assert main([str(dyn), "--frame", "7", "--port", "0"]) == 2
     assert "frames.json: no frame 7; baked frames: 0, 1" in capsys.readouterr().err
-    assert main([str(_static_run(tmp_path / "static")), "--frame", "1", "--port", "0"]) == 1
+    assert main([str(_static_run(tmp_path / "static")), "--frame", "1", "--port", "0"]) == 2
     assert "--frame 1 needs per-frame PLYs" in capsys.readouterr().err
 
 

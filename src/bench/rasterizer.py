@@ -59,11 +59,13 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from src.bench import load_result
 from src.core.cameras import Camera, look_at
 from src.core.splats import Splats
 from src.rasterizer.base import Rasterizer
 from src.rasterizer.projection import TILE, Projected, project_splats, tile_rects
 from src.rasterizer.projection_cpu import project_splats_fused
+from src.utils.record import OneLineParser, atomic_write_text, cli_error, os_error_line, output_file_problem
 
 FLOPS_PER_PAIR = 132  # fwd ~42 + bwd ~90 FLOP per blended (pixel, splat) pair
 BYTES_PER_SPLAT = 2 * 14 * 4  # 14 float32 parameters read, their gradients written
@@ -485,14 +487,9 @@ DEFAULT_OUT = RESULTS_DIR / "rasterizer.json"
 DEFAULT_CHART = RESULTS_DIR / "rasterizer.png"
 
 
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry: ``python -m src.bench rasterizer [--out FILE.json] [--chart FILE.png] [--quick]``
-    (or ``--from-json FILE.json [--chart FILE.png]`` to table / chart an earlier result).
-
-    A full run writes :data:`DEFAULT_OUT` and :data:`DEFAULT_CHART` unless ``--out`` / ``--chart``
-    name other files or ``--no-save`` is given; ``--quick`` and ``--from-json`` write only what
-    they are told to."""
-    p = argparse.ArgumentParser(prog="python -m src.bench rasterizer", description=__doc__.split("\n")[0])
+def _parser() -> OneLineParser:
+    """The command line of :func:`main`."""
+    p = OneLineParser(prog="python -m src.bench rasterizer", description=__doc__.split("\n")[0])
     p.add_argument("--out", help=f"write the results as JSON to this file (full run default: {DEFAULT_OUT})")
     p.add_argument("--chart", help=f"draw the times against the floors into this PNG (full run default: "
                                    f"{DEFAULT_CHART})")
@@ -508,56 +505,79 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=None,
                    help="torch/OpenMP threads for everything (default: torch's default)")
-    args = p.parse_args(argv)
+    return p
+
+
+def check_arguments(p: OneLineParser, args: argparse.Namespace) -> None:
+    """Refuse bad arguments and unwritable outputs before any work (one line, exit code 2); fills in the
+    default outputs of a full run."""
     if args.reps is not None and args.reps < 1:
         p.error(f"--reps {args.reps}: expected a positive number of timed repetitions")
     if args.threads is not None and args.threads < 1:
         p.error(f"--threads {args.threads}: expected a positive thread count")
+    for flag, value in (("--ref-max-s", args.ref_max_s), ("--ref-max-gb", args.ref_max_gb)):
+        if not (math.isfinite(value) and value >= 0):
+            p.error(f"{flag} {value}: expected a finite limit of 0 or more")
     for name in (s.strip() for s in args.scenes.split(",")):
         if name not in SCENES:
             p.error(f"--scenes: unknown scene {name!r}; choose from: {', '.join(sorted(SCENES))}")
+    if not (args.quick or args.no_save or args.from_json):
+        args.out = args.out or str(DEFAULT_OUT)
+        args.chart = args.chart or str(DEFAULT_CHART)
+    for flag, path in (("--out", args.out), ("--chart", args.chart)):
+        problem = output_file_problem(path) if path else None
+        if problem:
+            p.error(f"{flag}: {problem}")
+
+
+def read_result(p: OneLineParser, path: str) -> dict:
+    """The result an earlier ``--out`` wrote, checked to hold rows with every key the table reads."""
+    try:
+        result = load_result(path, "rasterizer benchmark result")
+    except ValueError as e:
+        p.error(str(e))
+    for i, r in enumerate(result["rows"]):
+        missing = [k for k in ROW_KEYS if not isinstance(r, dict) or k not in r]
+        if missing:
+            p.error(f"--from-json {path}: rows[{i}] lacks {', '.join(missing)}")
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry: ``python -m src.bench rasterizer [--out FILE.json] [--chart FILE.png] [--quick]``
+    (or ``--from-json FILE.json [--chart FILE.png]`` to table / chart an earlier result).
+
+    A full run writes :data:`DEFAULT_OUT` and :data:`DEFAULT_CHART` unless ``--out`` / ``--chart``
+    name other files or ``--no-save`` is given; ``--quick`` and ``--from-json`` write only what
+    they are told to."""
+    p = _parser()
+    args = p.parse_args(argv)
+    check_arguments(p, args)
     if args.from_json:
-        try:
-            with open(args.from_json) as f:
-                result = json.load(f)
-            rows = result["rows"]
-        except (OSError, ValueError, KeyError, TypeError) as e:
-            p.error(f"--from-json {args.from_json}: not a rasterizer benchmark result ({e})")
-        if not rows:
-            p.error(f"--from-json {args.from_json}: no rows")
-        for i, r in enumerate(rows):
-            missing = [k for k in ROW_KEYS if not isinstance(r, dict) or k not in r]
-            if missing:
-                p.error(f"--from-json {args.from_json}: rows[{i}] lacks {', '.join(missing)}")
+        result = read_result(p, args.from_json)
         print(format_table(result))
-        _write_chart(result, args.chart)
-        return 0
+        return _write_outputs(result, None, args.chart)
     if args.threads:
         torch.set_num_threads(args.threads)
     sizes = QUICK_SIZES if args.quick else FULL_SIZES
     reps = args.reps if args.reps is not None else (3 if args.quick else 5)
     scenes = tuple(x.strip() for x in args.scenes.split(",") if x.strip())
-    bad = [x for x in scenes if x not in SCENES]
-    if bad or not scenes:
-        p.error(f"--scenes: unknown {bad}; choose from {sorted(SCENES)}")
-    if not (args.quick or args.no_save):
-        args.out = args.out or str(DEFAULT_OUT)
-        args.chart = args.chart or str(DEFAULT_CHART)
     result = run(sizes, reps=reps, ref_max_s=args.ref_max_s, ref_max_gb=args.ref_max_gb, seed=args.seed,
                  scenes=scenes)
     print()
     print(format_table(result))
-    if args.out:
-        tmp = args.out + ".tmp"
-        try:
-            with open(tmp, "w") as f:
-                json.dump(result, f, indent=2)
-            os.replace(tmp, args.out)  # never a half-written result
-        finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
-        print(f"\nwrote {args.out}")
-    _write_chart(result, args.chart)
+    return _write_outputs(result, args.out, args.chart)
+
+
+def _write_outputs(result: dict, out: str | None, chart: str | None) -> int:
+    """Write the JSON (atomically) and the chart where asked; exit code 0, or 2 with one line if a write fails."""
+    try:
+        if out:
+            atomic_write_text(out, json.dumps(result, indent=2))
+            print(f"\nwrote {out}")
+        _write_chart(result, chart)
+    except OSError as exc:
+        return cli_error(f"cannot write the output: {os_error_line(exc)}")
     return 0
 
 

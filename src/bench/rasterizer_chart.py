@@ -10,10 +10,11 @@ Uses matplotlib's object API with the Agg canvas (no global backend is changed).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from matplotlib.figure import Figure
+
+from src.reporting.chart import save_figure
 
 TARGET_X_FLOOR = 30.0  # the target: within 30x of the blended-pairs floor
 STYLES = {"cpu": ("o", "tab:blue"), "cpu_torch_proj": ("s", "tab:cyan"), "torch_ref": ("x", "tab:orange"),
@@ -30,7 +31,7 @@ def _scenes(result: dict) -> list[str]:
 
 def make_rasterizer_chart(result: dict, path: str | Path) -> Path:
     """Write the chart of ``result`` (the dict :func:`src.bench.rasterizer.run` returns, or its
-    JSON) to ``path`` (PNG); returns the path. Written to a temporary file first, then renamed."""
+    JSON) to ``path`` (PNG, written atomically); returns the path."""
     path = Path(path)
     scenes = _scenes(result)
     if not scenes:
@@ -72,7 +73,4 @@ def make_rasterizer_chart(result: dict, path: str | Path) -> Path:
     if bw:
         sub += f", copy bandwidth {bw:.1f} GB/s"
     fig.suptitle(f"Rasterizer forward + backward vs the floors ({sub}; cpu labelled with x floor)", fontsize=9)
-    tmp = path.with_name(path.name + ".tmp")
-    fig.savefig(tmp, dpi=110, format="png")
-    os.replace(tmp, path)
-    return path
+    return save_figure(fig, path, "png", 110)

@@ -47,6 +47,9 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from src.bench import load_result
+from src.utils.record import OneLineParser, cli_error, os_error_line, output_file_problem, write_json
+
 METHODS = ("gs3d", "mip_splatting", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp",
            "deformable3dgs", "owl_4view")  # mip_splatting: also the main job's first stage
 BENCH_FRAMES = 24  # frames of the shipped multi-view sequences (dynamic methods size their ResFields by it)
@@ -439,8 +442,8 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m src.bench training", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = OneLineParser(prog="python -m src.bench training", description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=None,
                     help=f"write the rows as JSON here (default {DEFAULT_OUT}; --quick writes no file unless given)")
     ap.add_argument("--quick", action="store_true", help="10k splats, gs3d and splatfields3d_mip (the main job), 3 its")
@@ -475,6 +478,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--override-single", action="append", default=[], help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     args.out = output_path(args.out, args.quick)
+    check_outputs(ap, args)
     if args.from_json is not None:
         return _redraw(ap, args)
     check_arguments(ap, args)
@@ -526,14 +530,31 @@ def main(argv: list[str] | None = None) -> int:
             r["x_flop_floor"] = r["iter_ms"] / r["flop_floor_ms"] if r["flop_floor_ms"] > 0 else None
     print_table(rows)
     if args.out:
-        from src.utils.record import write_json
-
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         result = {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}}
-        write_json(args.out, result)
-        print(f"wrote {args.out}")
-        _write_chart(result, args.chart or args.out.with_suffix(".png"))
+        try:
+            write_json(args.out, result)
+            print(f"wrote {args.out}")
+            _write_chart(result, chart_path(args))
+        except OSError as exc:
+            return cli_error(f"cannot write the output: {os_error_line(exc)}")
     return 0 if all("error" not in r for r in rows) else 1
+
+
+def chart_path(args: argparse.Namespace) -> Path | None:
+    """Where the chart goes: ``--chart``, else beside the JSON (``--out`` or ``--from-json``) as ``.png``."""
+    beside = args.from_json if args.from_json is not None else args.out
+    return args.chart or (beside.with_suffix(".png") if beside is not None else None)
+
+
+def check_outputs(ap: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse an ``--out`` or chart path that cannot be written, before any work (one line, exit code 2)."""
+    outputs = [("--chart", chart_path(args))]
+    if args.from_json is None:
+        outputs.insert(0, ("--out", args.out))
+    for flag, path in outputs:
+        problem = output_file_problem(path) if path is not None else None
+        if problem:
+            ap.error(f"{flag}: {problem}")
 
 
 def output_path(out: Path | None, quick: bool) -> Path | None:
@@ -547,18 +568,20 @@ def output_path(out: Path | None, quick: bool) -> Path | None:
 def _redraw(ap: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """``--from-json FILE``: the table and chart of an earlier result, nothing run."""
     try:
-        result = json.loads(args.from_json.read_text())
-        rows = result["rows"]
-        for i, r in enumerate(rows):
-            missing = [k for k in (("method", "n_splats") if "error" in r else ROW_KEYS) if k not in r]
-            if missing:
-                ap.error(f"--from-json {args.from_json}: rows[{i}] lacks {', '.join(missing)}")
-    except (OSError, ValueError, KeyError, TypeError) as err:
-        ap.error(f"--from-json {args.from_json}: not a training benchmark result ({err})")
-    if not rows:
-        ap.error(f"--from-json {args.from_json}: no rows")
+        result = load_result(args.from_json, "training benchmark result")
+    except ValueError as err:
+        ap.error(str(err))
+    rows = result["rows"]
+    for i, r in enumerate(rows):
+        needed = ("method", "n_splats") if isinstance(r, dict) and "error" in r else ROW_KEYS
+        missing = [k for k in needed if not isinstance(r, dict) or k not in r]
+        if missing:
+            ap.error(f"--from-json {args.from_json}: rows[{i}] lacks {', '.join(missing)}")
     print_table(rows)
-    _write_chart(result, args.chart or args.from_json.with_suffix(".png"))
+    try:
+        _write_chart(result, chart_path(args))
+    except OSError as exc:
+        return cli_error(f"cannot write the chart: {os_error_line(exc)}")
     return 0
 
 

@@ -12,10 +12,11 @@ matplotlib's object API with the Agg canvas (no global backend is changed).
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from matplotlib.figure import Figure
+
+from src.reporting.chart import save_figure
 
 TARGET_X_GS3D = 8.0  # the target: an iteration within 8x of a 3DGS iteration at the same splat count
 PART_COLORS = {  # split key -> (legend label, colour)
@@ -40,7 +41,7 @@ def _label(row: dict) -> str:
 
 def make_training_chart(result: dict, path: str | Path) -> Path:
     """Write the chart of ``result`` (the JSON ``src.bench training`` writes: ``rows`` and ``settings``)
-    to ``path`` (PNG); returns the path. Written to a temporary file first, then renamed."""
+    to ``path`` (PNG, written atomically); returns the path."""
     path = Path(path)
     rows = result.get("rows") or []
     sizes = sorted({r["n_splats"] for r in rows})
@@ -88,7 +89,4 @@ def make_training_chart(result: dict, path: str | Path) -> Path:
     sub = ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} / conv {p['conv_gflops']:.0f}" for d, p in peaks.items())
     fig.suptitle(f"Training iteration split against the FLOP floor (peaks GFLOP/s: {sub or 'not recorded'})",
                  fontsize=9)
-    tmp = path.with_name(path.name + ".tmp")
-    fig.savefig(tmp, dpi=110, format="png")
-    os.replace(tmp, path)
-    return path
+    return save_figure(fig, path, "png", 110)

@@ -20,9 +20,8 @@ not at hand. Uses matplotlib's object API with the Agg canvas, so no global back
 
 from __future__ import annotations
 
-import argparse
+import io
 import math
-import os
 import re
 import statistics
 import sys
@@ -30,6 +29,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
@@ -37,6 +37,7 @@ from matplotlib.ticker import EngFormatter, LogLocator, NullFormatter
 
 from src.reporting.aggregate import ReportSpec, column_label, dedupe
 from src.reporting.collect import RunRecord
+from src.utils.record import OneLineParser, OutputBusy, atomic_write_bytes, cli_error, os_error_line, output_lock
 
 QUALITIES = ("psnr", "ssim")
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*", "h", "<", ">")
@@ -230,15 +231,31 @@ def _log_time_axis(ax) -> None:
     ax.xaxis.set_minor_formatter(NullFormatter())
 
 
+def save_figure(fig: Figure, path: Path | str, fmt: str, dpi: int, **kwargs: Any) -> Path:
+    """Render ``fig`` as ``fmt`` into memory and write it to ``path`` with the atomic writer (a reader never
+    sees a part; writers never share a temporary); ``kwargs`` go to ``savefig``. Returns the path."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=fmt, dpi=dpi, **kwargs)
+    atomic_write_bytes(path, buf.getvalue())
+    return Path(path)
+
+
 def _save(fig: Figure, out_dir: Path, stem: str) -> list[Path]:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for fmt in ("png", "svg"):
-        path, tmp = out_dir / f"{stem}.{fmt}", out_dir / f".{stem}.{fmt}.tmp"
-        fig.savefig(tmp, format=fmt, dpi=120, metadata={"Date": None} if fmt == "svg" else None)
-        os.replace(tmp, path)  # readers never see a half-written file
-        paths.append(path)
-    return paths
+    """Write ``<stem>.png`` and ``<stem>.svg`` (the SVG without a date, so that redraws compare equal)."""
+    return [save_figure(fig, out_dir / f"{stem}.{fmt}", fmt, 120, metadata={"Date": None} if fmt == "svg" else None)
+            for fmt in ("png", "svg")]
+
+
+def drawable_qualities(data: ChartData) -> list[str]:
+    """The qualities of ``data`` with points (one row of panels each).
+
+    Raises:
+        ValueError: no point to draw.
+    """
+    qualities = [q for q in QUALITIES if data.points.get(q)]
+    if not qualities:
+        raise ValueError("nothing to chart: no ok run has psnr/ssim together with train_s")
+    return qualities
 
 
 def draw_chart(data: ChartData, out_dir: Path, stem: str = "chart") -> list[Path]:
@@ -247,9 +264,7 @@ def draw_chart(data: ChartData, out_dir: Path, stem: str = "chart") -> list[Path
     Raises:
         ValueError: no point to draw.
     """
-    qualities = [q for q in QUALITIES if data.points.get(q)]
-    if not qualities:
-        raise ValueError("nothing to chart: no ok run has psnr/ssim together with train_s")
+    qualities = drawable_qualities(data)
     all_points = [p for q in qualities for p in data.points[q]]
     panels = sorted({p.panel for p in all_points} | {f[0] for f in data.failed_x if f[2] is not None})
     style = _Style.of(sorted({p.row for p in all_points} | set(data.failed), key=_natural),
@@ -429,17 +444,30 @@ def chart_from_table_md(text: str) -> ChartData:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m src.reporting.chart --from-table TABLE.md [--out DIR]``: the chart of a table.md."""
-    parser = argparse.ArgumentParser(prog="python -m src.reporting.chart", description=main.__doc__)
+    """``python -m src.reporting.chart --from-table TABLE.md [--out DIR]``: the chart of a table.md.
+
+    Exit codes: 0 written; 2 an unreadable table, one without a chart, or an output folder that cannot
+    be written (one line on stderr).
+    """
+    parser = OneLineParser(prog="python -m src.reporting.chart", description=main.__doc__)
     parser.add_argument("--from-table", type=Path, required=True, metavar="TABLE.md")
     parser.add_argument("--out", type=Path, help="directory for chart.png / chart.svg (default: the table's)")
     args = parser.parse_args(argv)
     try:
-        paths = draw_chart(chart_from_table_md(args.from_table.read_text(encoding="utf-8")),
-                           args.out or args.from_table.parent)  # fmt: skip
-    except (OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        text = args.from_table.read_text(encoding="utf-8")
+        data = chart_from_table_md(text)
+    except OSError as exc:
+        return cli_error(f"--from-table: {os_error_line(exc)}")
+    except (UnicodeDecodeError, ValueError) as exc:
+        return cli_error(f"--from-table {args.from_table}: {exc}")
+    out = args.out or args.from_table.parent
+    try:
+        with output_lock(out, "choose another --out"):
+            paths = draw_chart(data, out)
+    except OutputBusy as exc:
+        return cli_error(str(exc))
+    except OSError as exc:
+        return cli_error(f"--out: {os_error_line(exc)}")
     for path in paths:
         print(f"wrote {path}")
     return 0
