@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from src.data.base import Scene
 from src.eval.evaluator import Evaluator
 from src.init.stage1 import ensure_first_stage
+from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +77,7 @@ class CapacitySearch:
         """(training part, validation part) of the training views; the test views are never used."""
         val_idx = set(range(len(scene.train) - 1, -1, -self.holdout_every)) if len(scene.train) > 1 else set()
         if not val_idx:
-            raise ValueError("capacity=auto needs at least 2 training views to hold one out")
+            raise ConfigValueError("capacity=auto needs at least 2 training views to hold one out")
         train = [v for i, v in enumerate(scene.train) if i not in val_idx]
         val = [v for i, v in enumerate(scene.train) if i in val_idx]
         return replace(scene, train=train, test=val, val=[]), replace(scene, train=val, test=val, val=[])
@@ -97,7 +98,7 @@ class CapacitySearch:
                 out.init.n_points = int(budget)
             if width is not None and has_field(out):
                 if OmegaConf.select(out, "field_budget.head_width") is None:
-                    raise ValueError("capacity=auto: the config has no field_budget.head_width to search over "
+                    raise ConfigValueError("capacity=auto: the config has no field_budget.head_width to search over "
                                      "(set by conf/scale/*.yaml)")
                 out.field_budget.head_width = int(width)
             if plane_blocks is not None and has_triplane(out):

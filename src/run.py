@@ -55,7 +55,7 @@ def if_at_most(n: int | None, limit: int, then, otherwise):
 if not OmegaConf.has_resolver("if_at_most"):
     OmegaConf.register_new_resolver("if_at_most", if_at_most)
 if not OmegaConf.has_resolver("times"):  # a schedule scaled with its budget (sweeps/fair_budget.yaml)
-    OmegaConf.register_new_resolver("times", lambda a, b: int(round(float(a) * float(b))))
+    OmegaConf.register_new_resolver("times", lambda a, b: round(float(a) * float(b)))
 
 
 def resolve_device(name: str) -> torch.device:
@@ -171,6 +171,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     # src/utils/record.py); the run dir belongs to this job alone, so drop such leftovers.
     for stale in run_dir.glob(".*.tmp"):
         stale.unlink(missing_ok=True)
+    device = resolve_device(cfg.device)  # a GPU that is not there: refused before anything is written
     record: dict = {
         "status": "running", "error": None, "reason": None,
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
@@ -181,7 +182,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
                  # resolved: sweeps copy swept values into the keys, e.g. ${schedule.max_splats}
                  **OmegaConf.to_container(cfg.get("extra_keys", {}), resolve=True)},
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
-        "env": env_info(cfg.device), "run_dir": str(run_dir),
+        "env": env_info(device), "run_dir": str(run_dir),
     }
     if ctx["output_dir"] is not None:
         save_hydra_files(cfg, run_dir)
@@ -192,8 +193,6 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     try:
         check_targets(cfg)  # every _target_ at every depth, before anything is built
         validate_run_config(cfg)
-        device = resolve_device(cfg.device)
-        record["env"] = env_info(device)
         if cfg.get("threads"):
             torch.set_num_threads(int(cfg.threads))
         generator = seed_everything(cfg.seed)

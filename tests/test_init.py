@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from src.core.splats import Splats
+from src.data.base import DatasetError
 from src.data.blender import BlenderDataset
 from src.data.hull import inside_hull
 from src.init import FromRunInit, HullInit
@@ -66,7 +67,7 @@ def test_an_unknown_query_selection_is_refused_before_the_run():
 
 
 def test_from_run_without_artefact_names_the_command(scene, tmp_path):
-    with pytest.raises(FileNotFoundError, match=r"python -m src.run \+experiment=gs3d"):
+    with pytest.raises(DatasetError, match=r"python -m src.run \+experiment=gs3d"):
         FromRunInit(run_dir=str(tmp_path / "missing"))(scene, torch.Generator())
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from src.data.base import Scene
+from src.data.base import DatasetError, Scene
 from src.data.hull import sample_hull
 from src.utils.validate import QUERY_SELECT
 
@@ -117,18 +117,28 @@ class FromRunInit(Initialiser):
         from src.io.ply import read_ply
 
         if self.run_dir is None:
-            raise ValueError("init=from_run needs init.run_dir=<directory of a finished gs3d run>")
+            raise DatasetError("init=from_run needs init.run_dir=<directory of a finished gs3d run>")
         path = Path(self.run_dir) / "splats.ply"
         if not path.is_file():
-            raise FileNotFoundError(
+            raise DatasetError(
                 f"{path} not found: produce it with `python -m src.run +experiment=gs3d "
                 f"dataset.root={scene.meta.get('root', '<scene>')} dataset.n_views={len(scene.train)} "
                 f"hydra.run.dir={self.run_dir}` (or +experiment=gs3d_stage1 with the same dataset and seed; "
                 "+experiment=splatfields3d_2stage trains it itself unless stage1.auto=false)"
             )
-        splats = read_ply(path).splats
+        try:
+            splats = read_ply(path).splats
+        except (OSError, ValueError) as e:
+            raise DatasetError(f"init=from_run: {e}; expected the splats.ply a finished run writes") from None
         pts = splats.means.float()                              # [N, 3]
         opacity = splats.opacities.reshape(-1).float()          # [N], in (0, 1)
+        bad = ~(torch.isfinite(pts).all(dim=1) & torch.isfinite(opacity))
+        if pts.shape[0] == 0 or bool(bad.all()):
+            raise DatasetError(f"{path}: init=from_run found no splat with finite centre and opacity "
+                               f"({int(bad.sum())} of {pts.shape[0]} non-finite); expected a finished run's splats")
+        if bool(bad.any()):
+            raise DatasetError(f"{path}: {int(bad.sum())} of {pts.shape[0]} splats have a non-finite centre or "
+                               "opacity (a diverged run?); re-train that run or choose another init.run_dir")
         if self.hull_filter and any(v.mask is None for v in scene.train):
             log.warning("init.hull_filter: the training views of %s have no masks; the first stage's centres "
                         "are kept unfiltered", scene.name)

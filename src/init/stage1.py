@@ -30,6 +30,7 @@ from src.io.ply import write_baked_ply
 from src.utils.record import read_json, write_json
 from src.utils.runlock import exclusive
 from src.utils.seed import seed_everything
+from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +110,7 @@ def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
         keys = {**rec.get("keys", {}), "n_points": None, "image_size": rec.get("image_size")}
     diff = {k: (keys.get(k), v) for k, v in expected.items() if keys.get(k) is not None and keys.get(k) != v}
     if diff:
-        raise ValueError(f"{run_dir} holds a first stage trained with other settings "
+        raise ConfigValueError(f"{run_dir} holds a first stage trained with other settings "
                          f"({', '.join(f'{k}: {a} != {b}' for k, (a, b) in diff.items())}); "
                          "delete it or point paths.stage1_dir elsewhere")
     return rec
