@@ -93,6 +93,18 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         action="store_true",
         help="write chart.png/.svg (speed against accuracy) and, with curves in the records, curves.png/.svg",
     )
+    parser.add_argument(
+        "--leaderboard",
+        action="store_true",
+        help="rank every method at its own budget, chosen on validation views: print it, and with --out write "
+        "leaderboard.md/.json and leaderboard_curves.png/.svg (src.reporting.leaderboard)",
+    )
+    parser.add_argument(
+        "--reference",
+        metavar="EXPERIMENT",
+        help="with --leaderboard: the method whose mean training time sets the equal-time column "
+        "(default: splatfields3d_mip)",
+    )
     return parser.parse_args(argv)
 
 
@@ -172,6 +184,8 @@ def write_outputs(args: argparse.Namespace, text: str, collection: Collection, s
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code."""
     args = parse_args(argv)
+    if args.reference is not None and not args.leaderboard:
+        return cli_error("--reference needs --leaderboard")
     problem = check_sweep_dirs(args.sweep_dirs)
     if problem:
         return cli_error(problem)
@@ -185,6 +199,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli_error(unreadable(collection))
     for skipped in collection.problems:
         print(f"skipped {skipped}", file=sys.stderr)
+    if args.leaderboard:
+        from src.reporting.leaderboard import leaderboard_cli
+
+        return leaderboard_cli(collection, args.out, args.reference)
     try:
         spec = resolve_spec(None, collection).with_overrides(
             rows=args.rows, cols=args.cols, metrics=args.metrics, quoted=args.quoted
