@@ -20,7 +20,7 @@ from tests.scenes import write_blender_scene
 REPO = Path(__file__).resolve().parents[1]
 STATIC = ["gs3d", "gs3d_auto", "gs3d_moran", "gs3d_stage1", "sf_cnn", "sf_mlp", "sf_mlp_norm", "splatfields3d",
           "splatfields3d_2stage", "splatfields3d_mip", "mip_splatting", "gs2d", "lightgaussian", "dropgaussian",
-          "binocular3dgs"]
+          "binocular3dgs", "corgs"]
 MULTIVIEW = ["splatfields4d", "owl_4view", "owl_6view", "owl_8view", "owl_10view", "deformable3dgs", "gaussians4d"]
 MONOCULAR = ["monocular", "deformable3dgs_monocular", "gaussians4d_monocular"]
 MEANT_FOR = {"static": ("blender", "dtu"), "multiview": ("blender_mv", "owlii"), "monocular": ("dnerf", "nerfies")}

@@ -31,7 +31,7 @@ def test_the_default_is_no_ingredient():
     cfg = _compose([])
     recipe = build(cfg.sparse)
     assert isinstance(recipe, SparseRecipe) and recipe.empty
-    assert {"none", "dropout", "opacity_decay", "dropout_decay", "binocular"} <= set(OPTIONS)
+    assert set(OPTIONS) == {"none", "dropout", "opacity_decay", "dropout_decay", "binocular", "corgs"}
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -60,6 +60,7 @@ def test_the_first_stage_of_a_two_stage_run_has_no_ingredient():
 @pytest.mark.parametrize("experiment,option,changed", [
     ("dropgaussian", "dropout", {"strategy.grad_threshold", "strategy.stop_iter"}),
     ("binocular3dgs", "binocular", {"strategy.reset_every", "strategy.stop_iter", "model.sh_degree"}),
+    ("corgs", "corgs", {"strategy.grad_threshold", "strategy.stop_iter", "model.sh_degree_interval"}),
 ])
 def test_each_papers_experiment_is_gs3d_with_its_ingredient(experiment, option, changed):
     exp = OmegaConf.to_container(_compose([f"+experiment={experiment}"]), resolve=False)

@@ -8,9 +8,10 @@ models with co-pruning and pseudo-view co-regularisation. ``sparse=none`` (the d
 
 from src.sparse.base import SparseIngredient, SparseRecipe, members_of, optimizer_for, split_by_member
 from src.sparse.binocular import BinocularConsistency
+from src.sparse.corgs import CoRGS
 from src.sparse.dropgaussian import DropGaussian
 from src.sparse.opacity_decay import OpacityDecay
 from src.sparse.pair import CoTrainedPair, CoTrainingStrategy, MemberOptimizers
 
-__all__ = ["BinocularConsistency", "CoTrainedPair", "CoTrainingStrategy", "DropGaussian", "MemberOptimizers",
+__all__ = ["BinocularConsistency", "CoRGS", "CoTrainedPair", "CoTrainingStrategy", "DropGaussian", "MemberOptimizers",
            "OpacityDecay", "SparseIngredient", "SparseRecipe", "members_of", "optimizer_for", "split_by_member"]

@@ -6,7 +6,8 @@ the step's views out once per member, member after member, :meth:`CoTrainedPair.
 member its half of the cameras, the objective averages over both members' renders, and
 :meth:`CoTrainingStrategy.after_backward` / :meth:`CoTrainingStrategy.after_step` run each member's own
 densification on its own renders and optimiser. The checkpoint holds both members (the pair's state
-dict), both optimisers and both strategies' statistics. Evaluation uses the first member only.
+dict, packed as one splat set: :meth:`CoTrainedPair.state_dict`), both optimisers and both strategies'
+statistics. Evaluation uses the first member only (``src.run.fit_scene`` hands it on after training).
 """
 
 from __future__ import annotations
@@ -22,13 +23,20 @@ from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 from src.strategy.base import Strategy
 
+#: Keys of a packed pair state dict besides the members' own: the members' splat counts [2] and, per key
+#: of a member's state dict in sorted order, whether it is a per-splat tensor (concatenated) [K] bool.
+PAIR_COUNTS, PAIR_PER_SPLAT = "pair.counts", "pair.per_splat"
+
 
 class CoTrainedPair(SplatModel):
     """Two models of the same configuration trained together; the first is the one evaluated.
 
     Args:
-        first: the evaluated member (its splats, bake, splat count and parameters are the run's).
+        first: the evaluated member (its splats and bake are the pair's).
         second: the co-trained member.
+
+    ``n_splats`` and ``n_params`` count both members (what is trained); evaluation takes the first
+    member itself (:meth:`src.sparse.corgs.CoRGS.final_model`).
     """
 
     def __init__(self, first: SplatModel, second: SplatModel) -> None:
@@ -61,10 +69,10 @@ class CoTrainedPair(SplatModel):
 
     @property
     def n_splats(self) -> int:
-        return self.first.n_splats
+        return sum(m.n_splats for m in self.members)
 
     def n_params(self) -> int:
-        return self.first.n_params()
+        return sum(m.n_params() for m in self.members)
 
     def bake(self, time: float = 0.0, frame_id: int = 0) -> Splats:
         return self.first.bake(time=time, frame_id=frame_id)
@@ -89,19 +97,55 @@ class CoTrainedPair(SplatModel):
                 out[k if i == 0 else f"second.{k}"] = v / len(self.members)
         return out
 
+    def state_dict(self, *args, **kwargs) -> dict[str, Tensor]:
+        """Both members as one splat set of ``n_splats`` = N0 + N1 splats, keyed like one member.
+
+        A per-splat tensor (first dimension the member's splat count in both) is the first member's rows
+        followed by the second's [N0 + N1, ...]; any other tensor (network weights) is the two stacked
+        [2, ...]; :data:`PAIR_COUNTS` and :data:`PAIR_PER_SPLAT` record how. A checkpoint of a pair thus
+        has the layout of a checkpoint of one model whose splat count changes during training.
+        Arguments of ``nn.Module.state_dict`` are not supported (a new dict of detached tensors).
+        """
+        parts = [m.state_dict() for m in self.members]
+        counts = [m.n_splats for m in self.members]
+        keys = sorted(parts[0])
+        if sorted(parts[1]) != keys:
+            raise RuntimeError("co-trained members have different state dict keys: "
+                               f"{sorted(set(parts[0]) ^ set(parts[1]))[:5]}")
+        out: dict[str, Tensor] = {}
+        per_splat = []
+        for k in keys:
+            a, b = parts[0][k].detach(), parts[1][k].detach()
+            rows = a.ndim >= 1 and b.ndim >= 1 and a.shape[0] == counts[0] and b.shape[0] == counts[1]
+            rows = rows and a.shape[1:] == b.shape[1:]
+            if not rows and a.shape != b.shape:
+                raise RuntimeError(f"co-trained members differ in {k}: {list(a.shape)} and {list(b.shape)}")
+            out[k] = torch.cat([a, b]) if rows else torch.stack([a, b])
+            per_splat.append(rows)
+        out[PAIR_COUNTS] = torch.tensor(counts, dtype=torch.int64)
+        out[PAIR_PER_SPLAT] = torch.tensor(per_splat, dtype=torch.bool)
+        return out
+
     def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Each member loads its own part (``members.<i>.``), so members that resize on load (3DGS splat
-        counts, SplatFields query points) do."""
+        """Unpack :meth:`state_dict` and let each member load its part (members that resize on load, 3DGS
+        splat counts and SplatFields query points, do)."""
+        if PAIR_COUNTS not in state_dict or PAIR_PER_SPLAT not in state_dict:
+            raise RuntimeError(f"not the state dict of a co-trained pair (no {PAIR_COUNTS!r})")
+        n0 = int(state_dict[PAIR_COUNTS][0])
+        flags = [bool(f) for f in state_dict[PAIR_PER_SPLAT].tolist()]
+        keys = sorted(k for k in state_dict if k not in (PAIR_COUNTS, PAIR_PER_SPLAT))
+        if len(flags) != len(keys):
+            raise RuntimeError(f"a co-trained pair's state dict lists {len(flags)} layouts for {len(keys)} keys")
+        parts: list[dict[str, Tensor]] = [{}, {}]
+        for k, rows in zip(keys, flags, strict=True):
+            t = state_dict[k]
+            parts[0][k], parts[1][k] = (t[:n0], t[n0:]) if rows else (t[0], t[1])
         missing: list[str] = []
-        unexpected = [k for k in state_dict if not k.startswith("members.")]
-        for i, m in enumerate(self.members):
-            prefix = f"members.{i}."
-            part = {k[len(prefix):]: v for k, v in state_dict.items() if k.startswith(prefix)}
+        unexpected: list[str] = []
+        for i, (m, part) in enumerate(zip(self.members, parts, strict=True)):
             res = m.load_state_dict(part, strict=strict, assign=assign)
-            missing += [prefix + k for k in res.missing_keys]
-            unexpected += [prefix + k for k in res.unexpected_keys]
-        if strict and unexpected:
-            raise RuntimeError(f"unexpected keys in a co-trained pair's state dict: {unexpected[:5]}")
+            missing += [f"members.{i}.{k}" for k in res.missing_keys]
+            unexpected += [f"members.{i}.{k}" for k in res.unexpected_keys]
         return _IncompatibleKeys(missing, unexpected)
 
 
