@@ -8,7 +8,9 @@ Formats (name: what identifies it):
   (multi-view dynamic, this project's generator);
 * ``nerfies``: ``dataset.json`` + ``metadata.json`` (+ ``camera/``) (Nerfies / HyperNeRF / NeRF-DS);
 * ``owlii``: ``cam_train*/cameras_sphere.npz`` sub-folders (ResFields' NeuS layout of OwlII);
-* ``dtu``: ``cameras_sphere.npz`` + ``image/`` at the top level (NeuS/IDR layout of DTU).
+* ``dtu``: ``cameras_sphere.npz`` + ``image/`` at the top level (NeuS/IDR layout of DTU);
+* ``colmap``: ``images/`` + ``sparse/0/cameras.{bin,txt}`` or ``sparse/cameras.{bin,txt}`` (a COLMAP
+  sparse model), when no ``transforms_train.json`` is present.
 
 Every reader of this package (except the NeRF-synthetic one) calls :func:`check_format` first, so a
 reader pointed at a folder of another format fails with a message naming both formats.
@@ -29,6 +31,7 @@ EXPECTED_FILES: dict[str, str] = {
     "nerfies": "dataset.json, metadata.json, scene.json, camera/<id>.json and rgb/<n>x/<id>.png",
     "owlii": "cam_train_<k>/ folders, each with {rgb|image}/*.png, mask/*.png and cameras_sphere.npz",
     "dtu": "cameras_sphere.npz, image/*.png and mask/*.png at the top level",
+    "colmap": "images/ and a COLMAP model sparse/0/{cameras,images,points3D}.bin (or .txt, or in sparse/)",
 }
 
 
@@ -62,6 +65,9 @@ def detect_format(root: str | Path) -> str | None:
         if "time" not in keys:
             return "blender"
         return "blender_mv" if "camera_id" in keys else "dnerf"
+    if (root / "images").is_dir() and any((root / sub / f"cameras{ext}").is_file()
+                                          for sub in ("sparse/0", "sparse") for ext in (".bin", ".txt")):
+        return "colmap"
     return None
 
 

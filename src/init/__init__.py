@@ -3,6 +3,6 @@
 Conventions: normalised scene coordinates (the object inside [-1, 1]^3).
 """
 
-from src.init.initialisers import BoxInit, FromRunInit, HullInit, Initialiser
+from src.init.initialisers import BoxInit, FromRunInit, HullInit, Initialiser, SfmInit
 
-__all__ = ["BoxInit", "FromRunInit", "HullInit", "Initialiser"]
+__all__ = ["BoxInit", "FromRunInit", "HullInit", "Initialiser", "SfmInit"]

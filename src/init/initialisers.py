@@ -1,4 +1,4 @@
-"""Initial splat centres: visual hull of the training masks, a box, or a finished 3DGS run."""
+"""Initial splat centres: visual hull of the training masks, a box, a finished 3DGS run, or SfM points."""
 
 from __future__ import annotations
 
@@ -153,3 +153,34 @@ class FromRunInit(Initialiser):
             else:
                 pts = pts[torch.randperm(pts.shape[0], generator=generator)[: self.n_points]]
         return pts
+
+
+class SfmInit(Initialiser):
+    """The structure-from-motion model's 3D points as centres (3DGS's initialisation of real captures).
+
+    Reads ``scene.meta["points"]`` ([P, 3], normalised like the cameras), which ``dataset=colmap`` fills
+    from the model's ``points3D``; their colours (``scene.meta["point_colors"]``) stay unused, the
+    interface returning centres only. The points come from every image the model was built from, test
+    views included, as in the few-view papers' LLFF protocol.
+
+    Args:
+        n_points: keep at most this many, a uniform subsample drawn with the generator; fewer are all kept.
+    """
+
+    def __init__(self, n_points: int = 100_000) -> None:
+        self.n_points = n_points
+
+    def __call__(self, scene: Scene, generator: torch.Generator) -> Tensor:
+        points = scene.meta.get("points")
+        if points is None:
+            raise DatasetError(f"init=sfm needs the 3D points of a structure-from-motion model (dataset=colmap); "
+                               f"scene {scene.name} was read by dataset={scene.meta.get('format', '?')}, which has "
+                               "none: use init=hull or init=box")
+        if points.shape[0] == 0:
+            raise DatasetError(f"{scene.meta.get('points_file', scene.name)}: the COLMAP model has no 3D points, which "
+                               "init=sfm needs: rebuild it with `python -m src.data.sfm PHOTOS_DIR OUT_DIR` or use "
+                               "init=box")
+        points = points.float()                                   # [P, 3]
+        if points.shape[0] > self.n_points:
+            points = points[torch.randperm(points.shape[0], generator=generator)[: self.n_points]]
+        return points.clone()
