@@ -150,19 +150,10 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
 
 
 def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
-    """:func:`run`'s body, with the run directory's lock held."""
+    """:func:`run`'s body, with the run directory's lock held: check the directory, then train and record."""
     metrics_path = run_dir / "metrics.json"
     previous = read_json(metrics_path)
-    # Resume safety (sweeps/README.md, "Resume"): a re-used run dir must hold the SAME job. A sweep
-    # re-run with changed parameters renumbers its jobs, and skipping an "ok" record or resuming a
-    # checkpoint of another configuration would silently attribute results to the wrong config.
-    if previous and ctx["output_dir"] is not None and previous.get("overrides") is not None:
-        before, now = _identity_overrides(previous["overrides"]), _identity_overrides(ctx["overrides"])
-        if before != now:
-            raise RunDirError(
-                f"{run_dir} holds another run (overrides {before}); this job has {now}. Re-use a run/sweep "
-                "dir only with the same command; to extend a sweep use a new hydra.sweep.dir and pass both "
-                "directories to src.tables.")
+    check_same_job(previous, ctx, run_dir)
     fresh = not cfg.trainer.get("resume", True)  # trainer.resume=false: train again from scratch
     if cfg.get("skip_if_done", True) and not fresh and previous and previous.get("status") == "ok":
         log.info("%s already says status ok: skipping (set skip_if_done=false to re-run)", metrics_path)
@@ -172,7 +163,51 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
     for stale in run_dir.glob(".*.tmp"):
         stale.unlink(missing_ok=True)
     device = resolve_device(cfg.device)  # a GPU that is not there: refused before anything is written
-    record: dict = {
+    record = new_record(cfg, ctx, run_dir, device)
+    if ctx["output_dir"] is not None:
+        save_hydra_files(cfg, run_dir)
+    # Written now with status "running" (never "ok" before the end): a killed run leaves this record,
+    # so tables list it as not finished and a re-run can check it is the same job (above).
+    write_json(metrics_path, record)
+    t0 = time.perf_counter()
+    try:
+        train_and_evaluate(cfg, run_dir, device, record)
+    except DivergenceError as e:
+        reason = str(e) if str(e).startswith("collapse:") else f"divergence: {e}"
+        record.update(status="failed", reason=reason, error=str(e))
+        log.error("run diverged: %s", e)
+    except BaseException as e:
+        raise record_failure(record, e, run_dir) from None
+    finally:
+        record["wall_s"] = time.perf_counter() - t0
+        try:
+            write_json(metrics_path, record)
+        except OSError as e:  # a full or read-only disk: the record from the start of the run stays
+            log.error("could not update %s (%s)", metrics_path, e)
+    return record
+
+
+def check_same_job(previous: dict | None, ctx: dict, run_dir: Path) -> None:
+    """Refuse a run dir whose record holds another job's overrides (:class:`RunDirError`, one line).
+
+    Resume safety (sweeps/README.md, "Resume"): a sweep re-run with changed parameters renumbers its
+    jobs, and skipping an "ok" record or resuming a checkpoint of another configuration would silently
+    attribute results to the wrong config.
+    """
+    if not previous or ctx["output_dir"] is None or previous.get("overrides") is None:
+        return
+    before, now = _identity_overrides(previous["overrides"]), _identity_overrides(ctx["overrides"])
+    if before != now:
+        raise RunDirError(
+            f"{run_dir} holds another run (overrides {before}); this job has {now}. Re-use a run/sweep "
+            "dir only with the same command; to extend a sweep use a new hydra.sweep.dir and pass both "
+            "directories to src.tables.")
+
+
+def new_record(cfg: DictConfig, ctx: dict, run_dir: Path, device: torch.device) -> dict:
+    """The run record as written at the start of a run (``status: running``; keys of metrics.json, see
+    :mod:`src.utils.record`)."""
+    return {
         "status": "running", "error": None, "reason": None,
         "experiment": cfg.get("experiment_name", "default"), "method": cfg.method,
         "choices": ctx["choices"], "overrides": ctx["overrides"],
@@ -184,101 +219,99 @@ def _run_locked(cfg: DictConfig, run_dir: Path, ctx: dict) -> dict:
         "metrics": {}, "views": [], "report": OmegaConf.to_container(cfg.report) if cfg.get("report") else None,
         "env": env_info(device), "run_dir": str(run_dir),
     }
-    if ctx["output_dir"] is not None:
-        save_hydra_files(cfg, run_dir)
-    # Written now with status "running" (never "ok" before the end): a killed run leaves this record,
-    # so tables list it as not finished and a re-run can check it is the same job (above).
-    write_json(metrics_path, record)
-    t0 = time.perf_counter()
-    try:
-        check_targets(cfg)  # every _target_ at every depth, before anything is built
-        validate_run_config(cfg)
-        if cfg.get("threads"):
-            torch.set_num_threads(int(cfg.threads))
-        generator = seed_everything(cfg.seed)
-        dataset = build(cfg.dataset)
-        scene = dataset.load()
-        validate_scene(scene, str(cfg.dataset.root))
-        check_combination(cfg, scene)
-        scene = scene.to(device)
-        record["keys"]["scene"] = scene.name
-        record["views"] = scene.view_ids
-        record["image_size"] = scene.image_size
-        stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
-        if stage1 is not None:
-            record["stage1"] = stage1
-            generator = seed_everything(cfg.seed)  # the same stream whether stage 1 was trained or read
-        capacity = build(cfg.capacity) if cfg.get("capacity") else None
-        if capacity is not None and capacity.enabled:
-            t_search = time.perf_counter()
-            cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
-            record["capacity"]["search_s"] = time.perf_counter() - t_search
-            record["keys"].update(record["capacity"]["chosen"])
-        model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
-        # compress=...: write the compressed splat file and evaluate what it decodes to (LightGaussian)
-        compression = build(cfg.compress).apply(model, rasterizer, scene, run_dir) if cfg.get("compress") else {}
-        evaluator = build(cfg.eval)
-        ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
-        if cfg.trainer.get("tensorboard", False):
-            evaluator.log_images(run_dir, model, rasterizer, scene, step=int(cfg.trainer.iterations))
-        guard = DivergenceGuard(**OmegaConf.to_container(cfg.trainer.get("guard") or {}, resolve=True))
-        background_psnr = guard.check_final(model, rasterizer, scene, ev["psnr"], int(cfg.trainer.iterations))
-        ev["background_psnr"] = background_psnr
-        per_view = ev.pop("per_view_test")
-        per_frame = ev.pop("per_frame", None)
-        unavailable = ev.pop("unavailable_metrics", None)
-        record["metrics"] = {
-            "psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
-            "n_params": model.n_params(), "train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
-            "peak_mem_mb": peak_memory_mb(device), **ev,
-            **{f"iter_{k}": v for k, v in train_stats["timing"].items()}, **compression,
-        }
-        if stage1 is not None:  # the 3DGS first stage is part of this method's training cost
-            record["metrics"]["stage1_train_s"] = stage1["train_s"]
-        if "capacity" in record:  # so is the capacity search
-            record["metrics"]["capacity_search_s"] = record["capacity"]["search_s"]
-        if train_stats.get("curve"):  # learning curve: held-out PSNR against iteration and training time
-            record["curve"] = train_stats["curve"]
-            record["curve_split"] = train_stats.get("curve_split")
-        record["per_view"] = per_view
-        if per_frame is not None:
-            record["per_frame"] = per_frame
-        if unavailable:
-            record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
-        record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
-        write_baked_ply(model, run_dir, frames=scene_frames(scene))
-        if (run_dir / BAKED_PLY).is_file():  # the splat set's size on disk in the 3DGS PLY layout (MiB)
-            record["metrics"]["size_mb_ply"] = (run_dir / BAKED_PLY).stat().st_size / 2**20
-        record["status"] = "ok"
-        log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
-                 record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
-    except DivergenceError as e:
-        reason = str(e) if str(e).startswith("collapse:") else f"divergence: {e}"
-        record.update(status="failed", reason=reason, error=str(e))
-        log.error("run diverged: %s", e)
-    except INPUT_ERRORS as e:
+
+
+def record_failure(record: dict, e: BaseException, run_dir: Path) -> BaseException:
+    """Fill ``record`` for a run that stopped with ``e``; returns the exception to raise.
+
+    Input errors (and a run dir that cannot be written) say ``invalid input: <line>``; a signal says
+    ``interrupted`` and where the checkpoint is; anything else keeps its traceback in the record.
+    """
+    bad_dir = unwritable(e, run_dir)
+    if bad_dir is not None:
+        e = bad_dir
+    if isinstance(e, INPUT_ERRORS):
         record.update(status="failed", reason=f"invalid input: {e}", error=f"{type(e).__name__}: {e}")
-        raise
-    except RunInterrupted as e:
+    elif isinstance(e, RunInterrupted):
         e.reason = interruption_reason(e, run_dir / "checkpoint.pt")
         record.update(status="interrupted", reason=e.reason, error=str(e),
                       interrupted={"signal": e.name, "checkpoint_iteration": e.checkpoint_iteration})
-        raise
-    except BaseException as e:
-        bad_dir = unwritable(e, run_dir)
-        if bad_dir is not None:
-            record.update(status="failed", reason=f"invalid input: {bad_dir}", error=f"RunDirError: {bad_dir}")
-            raise bad_dir from None
-        record.update(status="failed", reason=f"{type(e).__name__}: {str(e)[:300]}", error=f"{type(e).__name__}: {e}",
-                      traceback=traceback.format_exc(limit=20))
-        raise
-    finally:
-        record["wall_s"] = time.perf_counter() - t0
-        try:
-            write_json(metrics_path, record)
-        except OSError as e:  # a full or read-only disk: the record from the start of the run stays
-            log.error("could not update %s (%s)", metrics_path, e)
-    return record
+    else:
+        record.update(status="failed", reason=f"{type(e).__name__}: {str(e)[:300]}",
+                      error=f"{type(e).__name__}: {e}", traceback=traceback.format_exc(limit=20))
+    return e
+
+
+def train_and_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device, record: dict) -> None:
+    """Load the scene, run the first stage / capacity search if configured, train, evaluate, write the
+    splats; fills ``record`` (keys, views, metrics, curve, ...) and sets ``status: ok``."""
+    check_targets(cfg)  # every _target_ at every depth, before anything is built
+    validate_run_config(cfg)
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    generator = seed_everything(cfg.seed)
+    scene = load_scene(cfg, device)
+    record["keys"]["scene"] = scene.name
+    record["views"] = scene.view_ids
+    record["image_size"] = scene.image_size
+    stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
+    if stage1 is not None:
+        record["stage1"] = stage1
+        generator = seed_everything(cfg.seed)  # the same stream whether stage 1 was trained or read
+    capacity = build(cfg.capacity) if cfg.get("capacity") else None
+    if capacity is not None and capacity.enabled:
+        t_search = time.perf_counter()
+        cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
+        record["capacity"]["search_s"] = time.perf_counter() - t_search
+        record["keys"].update(record["capacity"]["chosen"])
+    model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
+    # compress=...: write the compressed splat file and evaluate what it decodes to (LightGaussian)
+    compression = build(cfg.compress).apply(model, rasterizer, scene, run_dir) if cfg.get("compress") else {}
+    evaluate_into(record, cfg, model, rasterizer, scene, run_dir, device)
+    record["metrics"].update({"train_s": train_stats["train_s"], "iter_ms": train_stats["iter_ms"],
+                              **{f"iter_{k}": v for k, v in train_stats["timing"].items()}, **compression})
+    if stage1 is not None:  # the first stage is part of this method's training cost
+        record["metrics"]["stage1_train_s"] = stage1["train_s"]
+    if "capacity" in record:  # so is the capacity search
+        record["metrics"]["capacity_search_s"] = record["capacity"]["search_s"]
+    if train_stats.get("curve"):  # learning curve: held-out PSNR against iteration and training time
+        record["curve"] = train_stats["curve"]
+        record["curve_split"] = train_stats.get("curve_split")
+    record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
+    write_baked_ply(model, run_dir, frames=scene_frames(scene))
+    if (run_dir / BAKED_PLY).is_file():  # the splat set's size on disk in the 3DGS PLY layout (MiB)
+        record["metrics"]["size_mb_ply"] = (run_dir / BAKED_PLY).stat().st_size / 2**20
+    record["status"] = "ok"
+    log.info("test PSNR %.2f dB, SSIM %.4f, %d splats, %.1f s", record["metrics"]["psnr"],
+             record["metrics"]["ssim"], model.n_splats, record["metrics"]["train_s"])
+
+
+def load_scene(cfg: DictConfig, device: torch.device):
+    """The configured scene, validated and checked against the experiment, on ``device``."""
+    scene = build(cfg.dataset).load()
+    validate_scene(scene, str(cfg.dataset.root))
+    check_combination(cfg, scene)
+    return scene.to(device)
+
+
+def evaluate_into(record: dict, cfg: DictConfig, model, rasterizer, scene, run_dir: Path,
+                  device: torch.device) -> None:
+    """Test-view metrics, renders and the final divergence checks into ``record`` (``metrics``, ``per_view``)."""
+    evaluator = build(cfg.eval)
+    ev = evaluator.evaluate(model, rasterizer, scene, run_dir)
+    if cfg.trainer.get("tensorboard", False):
+        evaluator.log_images(run_dir, model, rasterizer, scene, step=int(cfg.trainer.iterations))
+    guard = DivergenceGuard(**OmegaConf.to_container(cfg.trainer.get("guard") or {}, resolve=True))
+    ev["background_psnr"] = guard.check_final(model, rasterizer, scene, ev["psnr"], int(cfg.trainer.iterations))
+    record["per_view"] = ev.pop("per_view_test")
+    per_frame = ev.pop("per_frame", None)
+    if per_frame is not None:
+        record["per_frame"] = per_frame
+    unavailable = ev.pop("unavailable_metrics", None)
+    if unavailable:
+        record["unavailable_metrics"] = unavailable  # e.g. LPIPS without user-supplied backbone weights
+    record["metrics"] = {"psnr": ev.pop("psnr"), "ssim": ev.pop("ssim"), "n_splats": model.n_splats,
+                         "n_params": model.n_params(), "peak_mem_mb": peak_memory_mb(device), **ev}
 
 
 def interruption_reason(e: RunInterrupted, ckpt: Path) -> str:
