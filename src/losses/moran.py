@@ -1,5 +1,8 @@
 """Local Moran's I of splat attributes (supplementary B.1, Eqs. B.3–B.6) and the Moran loss.
 
+One implementation: :func:`morans_i` is what the evaluation reports (``moran_*`` metrics, centred) and
+what :class:`MoranLoss` -- the loss ``SplatLoss`` trains with -- averages over attributes.
+
 For each splat, its neighbourhood X is the splat itself and its N-1 nearest neighbours (N = 5; the
 reference's kNN with K = 5 includes the query point). With W_ij = 1/‖loc_i − loc_j‖ for i ≠ j and
 W_ii = 0 (Eq. B.5),
@@ -9,8 +12,9 @@ W_ii = 0 (Eq. B.5),
 the denominator guarded by + 1e-4 (reference ``morans_measure``). I = mean over splats (Eq. B.3) and
 over feature dimensions. ``center=True`` subtracts the global mean of each attribute dimension first
 (the textbook Moran's I and the reference's evaluation script for scales/rotations/covariances);
-the reference's training loss does not centre. ``self_weight_quirk=True`` reproduces the reference
-weights: W_ii = 1e-5 (and pairs closer than 1e-5 also get 1e-5), weights normalised to sum 1.
+the reference's training loss does not centre (``MoranLoss(center=False)``).
+``self_weight_quirk=True`` reproduces the reference weights: W_ii = 1e-5 (and pairs closer than 1e-5
+also get 1e-5), weights normalised to sum 1.
 
 No pytorch3d: kNN by chunked ``torch.cdist`` (memory bounded by ``max_chunk_elems``).
 """
@@ -20,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from src.fields.flows import quat_to_rotmat_wxyz
 
@@ -113,43 +117,50 @@ def covariance_features(scales: Tensor, quats: Tensor) -> Tensor:
     return cov[:, iu[0], iu[1]]
 
 
-class MoranLoss(nn.Module):
-    """L_Moran = λ · Σ_attr (1 − clamp(I_attr, 0, 1)) (Eq. B.6; summed over attributes as the reference).
+class MoranLoss:
+    """L_Moran = 1 − clamp(mean_attr I_attr, 0, 1) (Eq. B.6), the Moran's I loss of the "3DGS + L_Moran"
+    baseline as it trains here (weighted by ``SplatLoss.lambda_moran``, B.1: 0.01).
+
+    The neighbourhoods (kNN of the splat centres) are recomputed every ``every`` calls' iterations or
+    when the splat count changes (densification); positions move slowly in between.
 
     Args:
-        weight: λ_Moran (B.1: 0.01).
         attributes: splat attributes to regularise (reference: scales, rotations, opacity, colour).
-        k: neighbourhood size (B.1: 5).
-        center: centre attributes first (default False: the reference's training loss does not).
-        self_weight_quirk: reference weights (default False: the paper's W_ii = 0).
+        k: neighbourhood size N including the splat itself (B.3: 5).
+        every: recompute the neighbourhoods every this many iterations.
+        center: subtract each attribute's mean as the textbook Moran's I (B.4) and the evaluation do (the
+            default, the paper's intent); False = the reference's training loss, which does not centre.
+        self_weight_quirk: reference weights (W_ii = 1e-5, normalised) instead of Eq. B.5's W_ii = 0.
     """
 
-    def __init__(
-        self,
-        weight: float = 0.01,
-        attributes: Sequence[str] = ("colors", "opacities", "scales", "quats"),
-        k: int = 5,
-        center: bool = False,
-        self_weight_quirk: bool = False,
-    ) -> None:
-        super().__init__()
-        self.weight = float(weight)
+    def __init__(self, attributes: Sequence[str] = ("colors", "opacities", "scales", "quats"), k: int = 5,
+                 every: int = 100, center: bool = True, self_weight_quirk: bool = False) -> None:
         self.attributes = tuple(attributes)
         self.k = int(k)
+        self.every = int(every)
         self.center = bool(center)
         self.self_weight_quirk = bool(self_weight_quirk)
+        self._nn: Tensor | None = None
+        self._nn_iter = -1
 
-    def forward(self, points: Tensor, attributes: Mapping[str, Tensor] | object) -> Tensor:
-        """The weighted loss (scalar) for splat centres ``points`` [N, 3].
+    def neighbours(self, points: Tensor, iteration: int) -> Tensor:
+        """kNN indices [N, k] of ``points`` [N, 3], cached for ``every`` iterations at a fixed splat count."""
+        stale = self._nn is None or self._nn.shape[0] != points.shape[0] or iteration - self._nn_iter >= self.every
+        if stale:
+            self._nn = knn_indices(points.detach(), self.k)
+            self._nn_iter = iteration
+        return self._nn
+
+    def __call__(self, points: Tensor, attributes: Mapping[str, Tensor] | object, iteration: int = 0) -> Tensor:
+        """The loss (scalar, unweighted) for splat centres ``points`` [N, 3].
 
         ``attributes`` maps names to [N] / [N, F] tensors, or is any object with those attributes
         (e.g. ``src.core.Splats``).
         """
-        neighbours = knn_indices(points, self.k)
-        total = points.new_zeros(())
+        nn_idx = self.neighbours(points, iteration)
+        vals = []
         for name in self.attributes:
             value = attributes[name] if isinstance(attributes, Mapping) else getattr(attributes, name)
-            i = morans_i(points, value, k=self.k, center=self.center, neighbours=neighbours,
-                         self_weight_quirk=self.self_weight_quirk)
-            total = total + (1.0 - i.clamp(0.0, 1.0))
-        return self.weight * total
+            vals.append(morans_i(points.detach(), value, k=self.k, center=self.center, neighbours=nn_idx,
+                                 self_weight_quirk=self.self_weight_quirk))
+        return 1.0 - torch.stack(vals).mean().clamp(0.0, 1.0)

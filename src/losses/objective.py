@@ -9,6 +9,7 @@ from torch import Tensor
 
 from src.core.splats import RenderOutput, Splats
 from src.data.base import View
+from src.losses.moran import MoranLoss
 from src.losses.ssim import ssim
 
 
@@ -46,12 +47,7 @@ class SplatLoss(Objective):
         self.lambda_mask = lambda_mask
         self.lambda_norm = lambda_norm
         self.lambda_moran = lambda_moran
-        self.moran_attributes = tuple(moran_attributes)
-        self.moran_k = moran_k
-        self.moran_every = moran_every
-        self.moran_center = moran_center
-        self._nn: Tensor | None = None
-        self._nn_iter = -1
+        self.moran = MoranLoss(attributes=moran_attributes, k=moran_k, every=moran_every, center=moran_center)
 
     def __call__(self, renders: list[RenderOutput], views: list[View], splats: list[Splats],
                  iteration: int = 0) -> dict[str, Tensor]:
@@ -78,22 +74,8 @@ class SplatLoss(Objective):
             terms["norm"] = nm
             total = total + self.lambda_norm * nm
         if self.lambda_moran > 0:
-            mo = self._moran(splats[0], iteration)
+            mo = self.moran(splats[0].means, splats[0], iteration)
             terms["moran"] = mo
             total = total + self.lambda_moran * mo
         terms["total"] = total
         return terms
-
-    def _moran(self, s: Splats, iteration: int) -> Tensor:
-        from src.losses.moran import knn_indices, morans_i
-
-        if self._nn is None or self._nn.shape[0] != s.n or iteration - self._nn_iter >= self.moran_every:
-            with torch.no_grad():
-                self._nn = knn_indices(s.means.detach(), self.moran_k)
-            self._nn_iter = iteration
-        vals = []
-        for name in self.moran_attributes:
-            a = getattr(s, name)
-            vals.append(morans_i(s.means.detach(), a, k=self.moran_k, center=self.moran_center, neighbours=self._nn))
-        score = torch.stack(vals).mean()
-        return 1.0 - score.clamp(0.0, 1.0)
