@@ -1,8 +1,11 @@
 """Every experiment composes and runs with every reader it is meant for (2 iterations, tiny fixtures).
 
-Static experiments x {blender, dtu}; multi-view dynamic experiments x {blender_mv, owlii}; monocular
-dynamic experiments x {dnerf, nerfies}. A combination that makes no sense fails with one line that says
-why (a static scene for a motion model, a reader that does not take the experiment's keys).
+The experiments are the files of ``conf/experiment/``: a new file joins the matrix by itself. An
+experiment's readers follow from its composed config: the reader it composes with by default names its
+family (static: blender, dtu; multi-view dynamic: blender_mv, owlii; monocular dynamic: dnerf, nerfies),
+and a family is static exactly when the experiment's model does not model motion (``src.run.DYNAMIC_MODELS``
+or ``model.network.dynamic``). A combination that makes no sense fails with one line that says why (a static
+scene for a motion model, a reader that does not take the experiment's keys).
 """
 
 from __future__ import annotations
@@ -11,29 +14,61 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
-from src.run import run
+from src.run import DYNAMIC_MODELS, run
 from src.utils.instantiate import ConfigError
 from tests import format_writers as fw
 from tests.scenes import write_blender_scene
 
 REPO = Path(__file__).resolve().parents[1]
-STATIC = ["gs3d", "gs3d_auto", "gs3d_moran", "gs3d_stage1", "sf_cnn", "sf_mlp", "sf_mlp_norm", "splatfields3d",
-          "splatfields3d_2stage", "splatfields3d_mip", "mip_splatting", "gs2d", "lightgaussian", "dropgaussian",
-          "binocular3dgs", "corgs"]
-MULTIVIEW = ["splatfields4d", "owl_4view", "owl_6view", "owl_8view", "owl_10view", "deformable3dgs", "gaussians4d"]
-MONOCULAR = ["monocular", "deformable3dgs_monocular", "gaussians4d_monocular"]
+EXPERIMENTS = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))
 MEANT_FOR = {"static": ("blender", "dtu"), "multiview": ("blender_mv", "owlii"), "monocular": ("dnerf", "nerfies")}
-CASES = ([(e, d) for e in STATIC for d in MEANT_FOR["static"]]
-         + [(e, d) for e in MULTIVIEW for d in MEANT_FOR["multiview"]]
-         + [(e, d) for e in MONOCULAR for d in MEANT_FOR["monocular"]])
+#: Experiments whose readers are not those of the family their default reader names (none today): name -> family.
+FAMILY_EXCEPTIONS: dict[str, str] = {}
+
+
+def describe(experiment: str) -> tuple[str, bool]:
+    """The reader ``+experiment=NAME`` composes with by default, and whether its model models motion."""
+    with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"+experiment={experiment}"], return_hydra_config=True)
+    dynamic = (bool(OmegaConf.select(cfg, "model.network.dynamic", default=False))
+               or str(OmegaConf.select(cfg, "model._target_", default="")) in DYNAMIC_MODELS)
+    return str(cfg.hydra.runtime.choices["dataset"]), dynamic
+
+
+def family_of(experiment: str, reader: str) -> str:
+    """The family of readers ``experiment`` is meant for (its exception, else the family of ``reader``)."""
+    if experiment in FAMILY_EXCEPTIONS:
+        return FAMILY_EXCEPTIONS[experiment]
+    families = [name for name, readers in MEANT_FOR.items() if reader in readers]
+    if not families:
+        raise ValueError(f"experiment {experiment!r} composes with dataset={reader}, which is in no family of "
+                         f"MEANT_FOR: add the reader to a family or the experiment to FAMILY_EXCEPTIONS")
+    return families[0]
+
+
+DESCRIBED = {e: describe(e) for e in EXPERIMENTS}
+FAMILY = {e: family_of(e, reader) for e, (reader, _) in DESCRIBED.items()}
+CASES = [(e, d) for e in EXPERIMENTS for d in MEANT_FOR[FAMILY[e]]]
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_every_experiment_is_in_the_matrix():
-    shipped = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))
-    assert sorted(STATIC + MULTIVIEW + MONOCULAR) == shipped, "a new experiment needs its readers in the matrix"
+    assert EXPERIMENTS, "no experiment found in conf/experiment/"
+    assert sorted({e for e, _ in CASES}) == EXPERIMENTS
+    # the derivation on experiments whose family is known by name
+    assert FAMILY["gs3d"] == FAMILY["splatfields3d_mip"] == FAMILY["dropgaussian"] == "static"
+    assert FAMILY["owl_4view"] == FAMILY["deformable3dgs"] == FAMILY["gaussians4d"] == "multiview"
+    assert FAMILY["monocular"] == FAMILY["deformable3dgs_monocular"] == "monocular"
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_family_agrees_with_the_model(experiment):
+    """A static family exactly for a model without motion: a dynamic model on a static reader is refused."""
+    _, dynamic = DESCRIBED[experiment]
+    assert (FAMILY[experiment] != "static") == dynamic, (experiment, FAMILY[experiment], dynamic)
 
 
 @pytest.fixture(scope="module")
