@@ -38,11 +38,6 @@ class Camera:
     extras: dict = field(default_factory=dict)
 
     @property
-    def cam_to_world(self) -> Tensor:
-        """[4, 4] inverse of ``world_to_cam``."""
-        return torch.linalg.inv(self.world_to_cam)
-
-    @property
     def center(self) -> Tensor:
         """[3] camera centre in world coordinates."""
         R = self.world_to_cam[:3, :3]
@@ -56,11 +51,6 @@ class Camera:
             [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]],
             dtype=self.world_to_cam.dtype,
         )
-
-    @property
-    def tan_half_fov(self) -> tuple[float, float]:
-        """(tan(fov_x / 2), tan(fov_y / 2)) for a centred principal point."""
-        return self.width / (2.0 * self.fx), self.height / (2.0 * self.fy)
 
     @property
     def fov_x(self) -> float:

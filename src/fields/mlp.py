@@ -41,7 +41,7 @@ class FieldMLP(nn.Module):
             concatenated to the hidden state (NeRF skip); that linear then has width + in_dim inputs.
             The reference's ``skips=[3]`` of an 8-linear net corresponds to ``skips=(4,)`` here.
         activation: hidden activation, ``"relu" | "leaky_relu" | "silu"``.
-        rank, n_frames, resfield_mode: ResField settings (see ``ResFieldLinear``); rank 0 -> static.
+        rank, n_frames: ResField settings (see ``ResFieldLinear``); rank 0 -> static.
         resfield_layers: which linear indices are time-dependent when rank > 0. Default (None) = all
             hidden layers after the first, i.e. indices 2 .. n_layers-2 (reference ``GeneralMLP``:
             the first two linears and the output linear stay ordinary).
@@ -64,7 +64,6 @@ class FieldMLP(nn.Module):
         rank: int = 0,
         n_frames: int = 0,
         resfield_layers: Sequence[int] | None = None,
-        resfield_mode: str = "lookup",
         output_act_quirk: bool = False,
         last_layer_extra_dim: int = 0,
         zero_init_output: bool = False,
@@ -95,7 +94,7 @@ class FieldMLP(nn.Module):
             fan_out = out_dim if i == n_layers - 1 else width
             r = rank if i in self.resfield_layers else 0
             layers.append(
-                ResFieldLinear(fan_in, fan_out, rank=r, n_frames=n_frames if r > 0 else 0, mode=resfield_mode)
+                ResFieldLinear(fan_in, fan_out, rank=r, n_frames=n_frames if r > 0 else 0)
             )
         self.layers = nn.ModuleList(layers)
         if zero_init_output:

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from src.fields.backbones import FieldBackbone, NoBackbone
 from src.fields.encoded_row import encoded_row
 from src.fields.encoding import PositionalEncoding
-from src.fields.flows import Flow, StaticFlow, quat_multiply_wxyz, rotmat_to_quat_wxyz
+from src.fields.flows import Flow, quat_multiply_wxyz, rotmat_to_quat_wxyz
 from src.fields.fused import HeadInput, head_outputs, head_tail, head_weights, kernel_fits
 from src.fields.head_kernel import resolve_head_kernel
 from src.fields.mlp import FieldMLP, get_activation
@@ -67,7 +67,6 @@ class SplatFieldNetwork(nn.Module):
         dynamic: 4D model: time PE on every head input, ResField layers, flow.
         time_pe_levels: PE levels of time (B.2: 4; reference code: 3).
         rank: ResField rank of all heads (B.2: 40 for OwlII, 0 for monocular); ignored if static.
-        resfield_mode: ``"lookup"`` (integer frame_id) or ``"interpolation"`` (continuous time).
         flow: flow head (``src.fields.flows``) applied to x_can, dynamic only; None = no motion
             beyond the time-conditioned deform MLP. Its ``hidden_dim`` must equal ``flow_width``.
         deform_weight: multiplies the deform residual; 0 disables (and does not build) the deform MLP
@@ -134,7 +133,6 @@ class SplatFieldNetwork(nn.Module):
         dynamic: bool = False,
         time_pe_levels: int = 4,  # B.2: time "positionally encoded with 4 levels"
         rank: int = 0,  # B.2: ResFields rank 40 (OwlII), 0 (monocular)
-        resfield_mode: str = "lookup",
         flow: Flow | None = None,
         deform_weight: float = 1.0,
         deform_zero_init: bool = True,
@@ -166,7 +164,6 @@ class SplatFieldNetwork(nn.Module):
             activation=activation,
             rank=eff_rank,
             n_frames=self.n_frames if eff_rank > 0 else 0,
-            resfield_mode=resfield_mode,
             output_act_quirk=output_act_quirk,
         )
 
@@ -366,7 +363,3 @@ class SplatFieldNetwork(nn.Module):
             "colors": colors,
             "canonical_deformed": x_can,
         }
-
-    def has_flow(self) -> bool:
-        """True when a non-trivial flow head is active."""
-        return self.flow is not None and not isinstance(self.flow, StaticFlow)
