@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from src.data.base import Scene
 from src.eval.evaluator import Evaluator
 from src.init.stage1 import ensure_first_stage
+from src.trainer.fit import fit_scene
 from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
@@ -147,8 +148,13 @@ class CapacitySearch:
             best, best_psnr = v, row["val_psnr"]
         return best
 
-    def choose(self, cfg: DictConfig, scene: Scene, out_dir: Path, device, fit: Callable) -> tuple[DictConfig, dict]:
-        """Run the search; returns (cfg with the chosen sizes, the record's ``capacity`` block)."""
+    def choose(self, cfg: DictConfig, scene: Scene, out_dir: Path, device,
+               fit: Callable | None = None) -> tuple[DictConfig, dict]:
+        """Run the search; returns (cfg with the chosen sizes, the record's ``capacity`` block).
+
+        ``fit`` trains one trial (default :func:`src.trainer.fit.fit_scene`, the way every run trains).
+        """
+        fit = fit or fit_scene
         part, val = self.split(scene)
         trace: list[dict] = []
         search_cfg = self._own_first_stage(cfg, out_dir)

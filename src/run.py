@@ -24,8 +24,8 @@ from src.data.validate import validate_scene
 from src.init.stage1 import ensure_first_stage
 from src.io.compressed import COMPRESSED_FILE
 from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
+from src.trainer.fit import fit_scene
 from src.trainer.guard import DivergenceError, DivergenceGuard
-from src.trainer.identity import run_identity
 from src.trainer.trainer import CheckpointError
 from src.utils.hydra_cli import job_started, run_cli
 from src.utils.instantiate import ConfigError, build, check_targets
@@ -254,14 +254,14 @@ def train_and_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device, rec
     record["keys"]["scene"] = scene.name
     record["views"] = scene.view_ids
     record["image_size"] = scene.image_size
-    stage1 = ensure_first_stage(cfg, scene, device, fit_scene)  # two-stage protocol, stage1.auto
+    stage1 = ensure_first_stage(cfg, scene, device)  # two-stage protocol, stage1.auto
     if stage1 is not None:
         record["stage1"] = stage1
         generator = seed_everything(cfg.seed)  # the same stream whether stage 1 was trained or read
     capacity = build(cfg.capacity) if cfg.get("capacity") else None
     if capacity is not None and capacity.enabled:
         t_search = time.perf_counter()
-        cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device, fit_scene)
+        cfg, record["capacity"] = capacity.choose(cfg, scene, run_dir / "capacity", device)
         record["capacity"]["search_s"] = time.perf_counter() - t_search
         record["keys"].update(record["capacity"]["chosen"])
     model, rasterizer, train_stats = fit_scene(cfg, scene, run_dir, device, generator)
@@ -324,46 +324,6 @@ def interruption_reason(e: RunInterrupted, ckpt: Path) -> str:
             done = None
     where = f"checkpoint at iteration {done} ({ckpt})" if done is not None else "no checkpoint in this run dir"
     return f"interrupted by {e.name}; {where}; re-run the same command to resume"
-
-
-def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, generator: torch.Generator):
-    """Build the model, rasterizer, loss, strategy and optimiser from ``cfg`` and train on ``scene``.
-
-    Returns (model, rasterizer, training statistics). Used for the main run and for capacity searches.
-    """
-    from src.sparse import optimizer_for  # the sparse-view ingredients (conf/sparse/)
-
-    rasterizer = build(cfg.rasterizer)
-    init_points = build(cfg.init)(scene, generator)
-
-    def build_model():
-        return build(cfg.model, init=init_points.to(device), n_frames=scene.n_frames).to(device)
-
-    model = build_model()
-    loss_fn = build(cfg.loss)
-    strategy = build(cfg.strategy, extent=scene.extent)
-    sparse = build(cfg.sparse) if cfg.get("sparse") else None  # training-free sparse-view ingredients (src/sparse)
-    if sparse is not None and sparse.empty:
-        sparse = None
-    if sparse is not None:  # e.g. CoR-GS: a second model and strategy of the same configuration beside the first
-        model, strategy = sparse.prepare(model, strategy, build_model,
-                                         lambda: build(cfg.strategy, extent=scene.extent))
-    optim_factory = build(cfg.optim)
-
-    def make_optimizer(m):  # one optimiser per co-trained model (src.sparse.optimizer_for)
-        return optimizer_for(m, lambda groups: optim_factory(groups=groups, extent=scene.extent))
-
-    trainer = build(cfg.trainer)
-    trainer.identity = run_identity(cfg, scene)  # checkpoints carry it; a resume of another run is refused
-    scorer = build(cfg.eval).curve_scorer(scene, rasterizer) if cfg.eval.get("curve_every") else None
-    stats = trainer.fit(model, scene, rasterizer, loss_fn, make_optimizer, strategy, run_dir, generator, seed=cfg.seed,
-                        curve=scorer[1] if scorer else None, curve_every=int(cfg.eval.get("curve_every") or 0),
-                        sparse=sparse)
-    if scorer:
-        stats["curve_split"] = scorer[0]
-    if sparse is not None:  # CoR-GS: the first of the two co-trained models is the one evaluated
-        model = sparse.final_model(model)
-    return model, rasterizer, stats
 
 
 # Overrides that do not change a run's results; a re-run may add or change them (resume check above).

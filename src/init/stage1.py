@@ -27,6 +27,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from src.data.base import Scene
 from src.io.ply import write_baked_ply
+from src.trainer.fit import fit_scene
 from src.utils.record import read_json, write_json
 from src.utils.runlock import exclusive
 from src.utils.seed import seed_everything
@@ -116,13 +117,15 @@ def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
     return rec
 
 
-def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit: Callable) -> dict | None:
+def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device,
+                       fit: Callable | None = None) -> dict | None:
     """Make sure ``init.run_dir`` holds the first stage for this run; train it if missing.
 
     Args:
         cfg: the run's config; acts only when it has ``stage1.auto: true`` and ``init.run_dir``.
         scene: the loaded scene (the first stage trains on the same training views).
-        fit: ``src.run.fit_scene`` (model, rasterizer, stats) = fit(cfg, scene, run_dir, device, generator).
+        fit: how to train it, ``(model, rasterizer, stats) = fit(cfg, scene, run_dir, device, generator)``;
+            default :func:`src.trainer.fit.fit_scene`.
 
     Returns:
         ``{"dir", "train_s", "trained_now"}`` for the run record, or None when not applicable.
@@ -140,7 +143,7 @@ def ensure_first_stage(cfg: DictConfig, scene: Scene, device: torch.device, fit:
             method = str(c1.method)
             log.info("first stage missing: training %s for %d iterations in %s", method, expected["iterations"],
                      partial)
-            model, _, stats = fit(c1, scene, partial, device, seed_everything(int(cfg.seed)))
+            model, _, stats = (fit or fit_scene)(c1, scene, partial, device, seed_everything(int(cfg.seed)))
             write_baked_ply(model, partial)
             rec = {"status": "ok", "method": method, "experiment": f"{method} first stage (in-process)",
                    "keys": {k: expected[k] for k in ("scene", "n_views", "seed", "iterations")},

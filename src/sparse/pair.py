@@ -7,7 +7,7 @@ member its half of the cameras, the objective averages over both members' render
 :meth:`CoTrainingStrategy.after_backward` / :meth:`CoTrainingStrategy.after_step` run each member's own
 densification on its own renders and optimiser. The checkpoint holds both members (the pair's state
 dict, packed as one splat set: :meth:`CoTrainedPair.state_dict`), both optimisers and both strategies'
-statistics. Evaluation uses the first member only (``src.run.fit_scene`` hands it on after training).
+statistics. Evaluation uses the first member only (``src.trainer.fit.fit_scene`` hands it on after training).
 """
 
 from __future__ import annotations

@@ -164,7 +164,7 @@ class Trainer:
     def check_identity(self, path: Path, ck: dict, model: SplatModel) -> None:
         """Refuse, in one line, a checkpoint of another run (experiment, model, scene, config or shapes).
 
-        Checked only when the trainer knows its run (``self.identity``, set by ``src.run.fit_scene``).
+        Checked only when the trainer knows its run (``self.identity``, set by ``src.trainer.fit.fit_scene``).
         """
         if self.identity is None:
             return
