@@ -3,12 +3,31 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from src.core.cameras import Camera
 from src.core.splats import Splats
+
+
+@dataclass
+class AnchorDecode:
+    """What one ``splats(camera)`` call of an anchor-based model decoded (Scaffold-GS).
+
+    Each anchor decodes ``k`` child splats; child ``j`` of anchor ``a`` has the flat id ``a * k + j``.
+
+    Attributes:
+        anchors: [V] long ids of the anchors decoded for the camera (those in its view frustum).
+        children: [M] long flat child ids of the splats returned, in the order of the splat set.
+        opacity: [V, k] the decoded anchors' child opacities before the non-positive ones were
+            dropped (detached; may be <= 0).
+    """
+
+    anchors: Tensor
+    children: Tensor
+    opacity: Tensor
 
 
 class SplatModel(nn.Module, ABC):
@@ -83,3 +102,36 @@ class SplatModel(nn.Module, ABC):
 
     def reset_opacity(self, optimizer: torch.optim.Optimizer, value: float) -> None:
         """Clamp stored opacities to at most ``value`` (3DGS opacity reset); no-op for fields."""
+
+    # -- anchor interface (models whose splats are decoded from anchors: Scaffold-GS) ----------
+    @property
+    def children_per_anchor(self) -> int:
+        """Number k of child splats each anchor decodes."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def anchor_voxel_size(self) -> float:
+        """Edge (world units) of the voxel grid the initial anchors were placed on."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def anchor_means(self) -> Tensor:
+        """[A, 3] anchor positions (detached)."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def child_means(self) -> Tensor:
+        """[A, k, 3] positions of every anchor's child splats (detached, whether decoded or not)."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def anchor_decodes(self) -> list[AnchorDecode]:
+        """What the training-mode ``splats`` calls of the current iteration decoded, in call order."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def grow_anchors(self, optimizer: torch.optim.Optimizer, positions: Tensor, size: float, parents: Tensor,
+                     slots: Tensor) -> None:
+        """Append anchors at ``positions`` [M, 3] on a voxel grid of edge ``size``; ``parents`` [S] (anchor
+        ids) and ``slots`` [S] (indices into ``positions``) say which existing anchors each new one is
+        initialised from."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
+
+    def prune_anchors(self, optimizer: torch.optim.Optimizer, mask: Tensor) -> None:
+        """Remove the anchors where ``mask`` [A] is True (with their children)."""
+        raise NotImplementedError(f"{type(self).__name__} has no anchors")
