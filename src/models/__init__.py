@@ -2,6 +2,7 @@
 
 * ``GaussianSplatModel`` (3DGS baseline): free per-splat parameters.
 * ``SplatFieldsModel``: splat attributes predicted by neural fields at canonical points.
+* ``ScaffoldGSModel`` (Scaffold-GS baseline): splats decoded per view from anchors by small MLPs.
 
 Conventions: raw parameters are log-scales, logit-opacities and unnormalised (w, x, y, z)
 quaternions; ``splats(camera)`` returns activated attributes in OpenCV world coordinates.
