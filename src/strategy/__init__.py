@@ -5,9 +5,10 @@ the model's densification interface, so the same strategy drives free 3DGS splat
 canonical query points of SplatFields. ``max_splats`` is a hard cap honoured by every strategy.
 """
 
+from src.strategy.anchor import AnchorStrategy
 from src.strategy.base import NoDensification, Strategy
 from src.strategy.budget import BudgetStrategy
 from src.strategy.default import ADCStrategy
 from src.strategy.lightgaussian import LightGaussianStrategy
 
-__all__ = ["ADCStrategy", "BudgetStrategy", "LightGaussianStrategy", "NoDensification", "Strategy"]
+__all__ = ["ADCStrategy", "AnchorStrategy", "BudgetStrategy", "LightGaussianStrategy", "NoDensification", "Strategy"]
