@@ -1,11 +1,11 @@
 """SplatFieldNetwork: the per-splat neural field of SplatFields (supplementary B.2).
 
-Given canonical splat centres x [N, 3] (fixed query points, assumed in [-1, 1]^3) and their kNN base
-scales, the network predicts every splat attribute:
+Given canonical splat centres x [N, 3] (fixed query points, in [-1, 1]^3 unless contracted) and their
+kNN base scales, the network predicts every splat attribute:
 
-    f      = backbone(x)                                 canonical feature (tri-plane), [N, F]
-    x_can  = x + deform_weight · deform(PE(x), f, PE(t))   "deformed" canonical centre
-    h_in   = [PE(x_can), f, PE(t)]                        input of every other head (the feature is
+    f      = backbone(k(x))                              canonical feature (tri-plane), [N, F]
+    x_can  = x + deform_weight · deform(PE(k(x)), f, PE(t))   "deformed" canonical centre (scene units)
+    h_in   = [PE(k(x_can)), f, PE(t)]                     input of every other head (the feature is
                                                           the CANONICAL one, as the reference)
     means  = flow(act(trunk(h_in)), x_can, t)            4D only (x_can for static scenes)
     colour = sigmoid(colour(h_in, PE(viewdir) at the last layer)), viewdir from the final means
@@ -13,6 +13,11 @@ scales, the network predicts every splat attribute:
     opac.  = sigmoid(opacity(h_in))
     quat   = q_flow ⊗ normalise(rotation(h_in) + (1, 0, 0, 0))   (q_flow = identity without a
                                                           rotation-carrying flow)
+
+k is the coordinate contraction (``contraction``, ``src.fields.contraction``): the identity by default
+(``none``: x itself, the paper's bounded scenes); ``mip360`` maps R^3 into the unit ball for unbounded
+scenes. It acts only where positions are encoded (the tri-plane lookup and every head's PE); the
+deformation, the flow and the returned means stay in scene units, and gradients reach x through k.
 
 PE(t) (``time_pe_levels``) is appended to every head's input only when ``dynamic``; ResField layers
 (``rank`` > 0) are used only when ``dynamic``.
@@ -28,6 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from src.fields.backbones import FieldBackbone, NoBackbone
+from src.fields.contraction import Contraction
 from src.fields.encoded_row import encoded_row
 from src.fields.encoding import PositionalEncoding
 from src.fields.flows import Flow, quat_multiply_wxyz, rotmat_to_quat_wxyz
@@ -93,6 +99,11 @@ class SplatFieldNetwork(nn.Module):
         head_kernel: run each head (input, hidden and output layers) as one AMX-BF16 kernel
             (``src.fields.head_kernel``) when the fused heads run in bf16: ``"auto"`` (where the CPU has AMX),
             ``"on"`` (error without AMX), ``"off"``.
+        contraction: coordinate contraction before every encoding of a position (module docstring,
+            ``src.fields.contraction``): ``"none"`` (default, the paper: centres assumed in [-1, 1]^3) or
+            ``"mip360"`` (Mip-NeRF 360's contraction halved into the unit ball, for unbounded scenes).
+        contraction_radius: ``mip360``'s radius r in scene units: identity up to the scale 1 / (2r) within
+            it, everything beyond folded into 1/2 <= |k(x)| < 1.
     """
 
     def __init__(
@@ -143,8 +154,11 @@ class SplatFieldNetwork(nn.Module):
         fused: bool = False,
         autocast_bf16: bool | str = False,
         head_kernel: bool | str = False,
+        contraction: str = "none",
+        contraction_radius: float = 1.0,
     ) -> None:
         super().__init__()
+        self.contraction = Contraction(contraction, contraction_radius)
         if scale_mode not in SCALE_MODES:
             raise ValueError(f"scale_mode must be one of {SCALE_MODES}, got {scale_mode!r}")
         get_activation(activation)  # validate
@@ -229,7 +243,7 @@ class SplatFieldNetwork(nn.Module):
         """Splat attributes for canonical centres [N, 3] with kNN base scales [N, 3].
 
         Args:
-            canonical: [N, 3] canonical query points (in [-1, 1]^3).
+            canonical: [N, 3] canonical query points (in [-1, 1]^3 unless ``contraction`` maps them there).
             base_scale: [N, 3] (or [N, 1]) positive kNN base scales.
             frame_id, time: the frame to evaluate (used only when ``dynamic``).
             viewdirs: [N, 3] unit directions from the camera centre to the splats; when
@@ -248,7 +262,9 @@ class SplatFieldNetwork(nn.Module):
         if self.fused:
             return self._forward_fused(canonical, base_scale, frame_id, time, viewdirs, state, camera_center)
         n = canonical.shape[0]
-        feat = self.backbone.sample(state, canonical)  # [N, F] canonical feature
+        k = self.contraction
+        k_canonical = k(canonical)  # [N, 3] the encoded position (``canonical`` itself without contraction)
+        feat = self.backbone.sample(state, k_canonical)  # [N, F] canonical feature
         if self.time_pe is not None:
             t = canonical.new_full((n, 1), float(time))
             t_enc = self.time_pe(t)  # [N, 1 + 2·L_t]
@@ -261,22 +277,23 @@ class SplatFieldNetwork(nn.Module):
             return mlp(torch.cat([pe(pts), feat, t_enc], dim=-1), frame_id=fid, time=tim, extra=extra)
 
         if self.deform_mlp is not None:
-            x_can = canonical + self.deform_weight * run(self.deform_pe, self.deform_mlp, canonical)
+            x_can = canonical + self.deform_weight * run(self.deform_pe, self.deform_mlp, k_canonical)
         else:
             x_can = canonical
+        k_x_can = k(x_can)  # [N, 3]
 
         means, R = x_can, None
         if self.flow is not None:
             h = None
             if self.flow_mlp is not None:
-                h = self._act(run(self.flow_pe, self.flow_mlp, x_can))  # [N, flow_width]
+                h = self._act(run(self.flow_pe, self.flow_mlp, k_x_can))  # [N, flow_width]
             means, R = self.flow(h, x_can, frame_id=fid, time=tim)  # [N, 3], [N, 3, 3] | None
 
         extra = self._viewdir_enc(means, viewdirs, camera_center)
-        c = run(self.color_pe, self.color_mlp, x_can, extra)  # [N, 3]
-        o = run(self.opacity_pe, self.opacity_mlp, x_can)  # [N, 1]
-        s = run(self.scale_pe, self.scale_mlp, x_can)  # [N, 3]
-        q = run(self.rotation_pe, self.rotation_mlp, x_can)  # [N, 4]
+        c = run(self.color_pe, self.color_mlp, k_x_can, extra)  # [N, 3]
+        o = run(self.opacity_pe, self.opacity_mlp, k_x_can)  # [N, 1]
+        s = run(self.scale_pe, self.scale_mlp, k_x_can)  # [N, 3]
+        q = run(self.rotation_pe, self.rotation_mlp, k_x_can)  # [N, 4]
         return self._activate(x_can, means, R, base_scale, c, o, s, q)
 
     def _xcan_heads(self) -> tuple[list[FieldMLP], list[PositionalEncoding]]:
@@ -306,7 +323,8 @@ class SplatFieldNetwork(nn.Module):
         kern = bf16 and self.head_kernel and not torch.compiler.is_compiling()
         mlps, pes = self._xcan_heads()
         with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
-            feat = self.backbone.sample(state, canonical)  # [N, F]
+            k_canonical = self.contraction(canonical)  # [N, 3] float32: autocast leaves its ops alone
+            feat = self.backbone.sample(state, k_canonical)  # [N, F]
             t_enc = self.time_pe(canonical.new_full((1, 1), float(time))) if self.time_pe is not None else None
             fd, td = int(feat.shape[-1]), int(t_enc.shape[-1]) if t_enc is not None else 0
             pe_max = self._shared_pe.out_dim(3)
@@ -318,14 +336,15 @@ class SplatFieldNetwork(nn.Module):
                 wd = head_weights(self.deform_mlp, fid, tim)
                 dim_d = self.deform_pe.out_dim(3)
                 deform = HeadInput(self.deform_mlp, wd, dim_d, dim_d, fd, td)
-                (d,) = head_outputs([deform], [wd], encoded_row(feat, canonical, self.deform_pe), t_enc,
+                (d,) = head_outputs([deform], [wd], encoded_row(feat, k_canonical, self.deform_pe), t_enc,
                                     [kern and kernel_fits(self.deform_mlp)])
                 x_can = canonical + self.deform_weight * (d if torch.is_tensor(d) else
                                                           head_tail(self.deform_mlp, wd, d, last_dtype=last))
             # per head its output (kernel) or its input blocks; a view-dependent colour head's last
             # layer reads the view directions, known after the flow: it runs through head_tail
             kernel = [kern and kernel_fits(m) and not (m is self.color_mlp and self.view_dependent) for m in mlps]
-            res = head_outputs(heads, weights, encoded_row(feat, x_can, self._shared_pe), t_enc, kernel)
+            res = head_outputs(heads, weights, encoded_row(feat, self.contraction(x_can), self._shared_pe), t_enc,
+                               kernel)
             outs = {}
             for m, w, r in zip(mlps, weights, res, strict=True):
                 if m is not self.color_mlp:
