@@ -2,12 +2,15 @@
 
 The per-splat state is only a set of canonical centres and their kNN base scales (buffers, not
 trained); every rendered attribute comes from :class:`src.fields.network.SplatFieldNetwork`.
-Conventions: normalised scene coordinates in [-1, 1]^3, quaternions (w, x, y, z), linear scales.
+Conventions: normalised scene coordinates in [-1, 1]^3 (anywhere in R^3 with ``network.contraction=mip360``,
+which the fields apply before encoding a position: unbounded scenes, ``src.fields.contraction``),
+quaternions (w, x, y, z), linear scales.
 """
 
 from __future__ import annotations
 
 import inspect
+import logging
 from collections.abc import Callable
 
 import torch
@@ -19,6 +22,8 @@ from src.fields.network import SplatFieldNetwork
 from src.models.base import SplatModel
 from src.models.knn import knn_base_scale
 from src.models.mip_splatting import filter_variance, max_sampling_rate
+
+log = logging.getLogger(__name__)
 
 
 class SplatFieldsModel(SplatModel):
@@ -78,6 +83,7 @@ class SplatFieldsModel(SplatModel):
         self.clone_jitter = clone_jitter
         self.register_buffer("canonical", init.float().clone())  # [N, 3]
         self.register_buffer("base_scale", knn_base_scale(init.float())[:, None].repeat(1, 3))  # [N, 3]
+        self._warn_if_unbounded()
         self._last: dict[str, Tensor] = {}
         if not filter_3d >= 0:
             raise ValueError(f"model.filter_3d must be >= 0, got {filter_3d}")
@@ -88,6 +94,18 @@ class SplatFieldsModel(SplatModel):
     @property
     def n_splats(self) -> int:
         return self.canonical.shape[0]
+
+    def _warn_if_unbounded(self) -> None:
+        """Warn when more than 1 % of the centres lie outside [-1, 1]^3 and the fields do not contract them:
+        the tri-planes read zero there (one feature for all of them)."""
+        contraction = getattr(self.network, "contraction", None)
+        if contraction is None or not contraction.is_identity or self.n_splats == 0:
+            return
+        outside = int((self.canonical.abs() > 1).any(dim=1).sum())
+        if outside > 0.01 * self.n_splats:
+            log.warning("%d of %d initial centres lie outside [-1, 1]^3, where the tri-planes read zero: for an "
+                        "unbounded scene use model.network.contraction=mip360 (+experiment=splatfields3d_unbounded)",
+                        outside, self.n_splats)
 
     def param_groups(self) -> list[dict]:
         return [{"name": "network", "params": [p for p in self.network.parameters() if p.requires_grad]}]
