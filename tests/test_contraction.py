@@ -173,6 +173,30 @@ def test_mip360_gives_far_splats_their_own_features():
     assert float((out["colors"][0] - out["colors"][1]).abs().max()) > 0
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_mip360_every_position_encoding_reads_contracted_points(fused, monkeypatch):
+    """The deform head encodes k(x), every other head k(x_can), on the fused and the reference path."""
+    import src.fields.network as network
+
+    x = torch.cat([points(6)[0], FAR])  # [8, 3]
+    base = torch.full((8, 3), 0.02)
+    net = field("mip360", fused=fused)
+    encoded: list[torch.Tensor] = []
+    if fused:  # each group's input row [f, PE(points)]
+        row = network.encoded_row
+        monkeypatch.setattr(network, "encoded_row", lambda f, p, pe: encoded.append(p) or row(f, p, pe))
+    else:  # each head's PE
+        for pe in (net.deform_pe, net.color_pe, net.opacity_pe, net.scale_pe, net.rotation_pe):
+            pe.register_forward_hook(lambda _m, a, _o: encoded.append(a[0]))
+    with torch.no_grad():
+        out = net(x, base)
+    k = net.contraction
+    assert len(encoded) == (2 if fused else 5)
+    torch.testing.assert_close(encoded[0], k(x), rtol=0, atol=0)
+    for e in encoded[1:]:
+        torch.testing.assert_close(e, k(out["canonical_deformed"]), rtol=0, atol=0)
+
+
 def test_gradients_reach_the_centres_through_the_contraction():
     """mip360: the compiled sampler (centres without gradient) and grid_sample (centres with gradient) read the
     same contracted positions; the centres' gradient is finite, non-zero far out, and matches float64 differences."""
@@ -198,6 +222,19 @@ def test_gradients_reach_the_centres_through_the_contraction():
         return torch.cat([o["colors"], o["opacities"][:, None], o["scales"]], dim=1)
 
     assert torch.autograd.gradcheck(attrs, (x.double()[5:].requires_grad_(),), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_model_warns_about_centres_outside_the_planes_without_a_contraction(caplog):
+    from src.models.splatfields import SplatFieldsModel
+
+    x, _ = points(40)
+    far = torch.cat([x, 3.0 * FAR])  # [42, 3]: 2 of 42 outside [-1, 1]^3
+    with caplog.at_level("WARNING", logger="src.models.splatfields"):
+        SplatFieldsModel(x, field("none"))
+        SplatFieldsModel(far, field("mip360"))
+        assert not caplog.records
+        SplatFieldsModel(far, field("none"))
+    assert "2 of 42 initial centres lie outside [-1, 1]^3" in caplog.text and "contraction=mip360" in caplog.text
 
 
 # -- end to end --------------------------------------------------------------------------------------------------------
