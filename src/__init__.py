@@ -10,18 +10,7 @@ Conventions used throughout the package (each sub-package repeats the ones it re
   (w, x, y, z) order, opacities in (0, 1), colours/features as rendered. Models keep their raw
   parameters (log-scales, logit-opacities) and activate them.
 * Time is a float in [0, 1]; ``frame_id`` is the integer index of a frame in its sequence.
+
+Importing the package has no side effect: the entry points (``src.run``, ``src.bench``, ``src.view``,
+``src.prune``) set the OpenMP threading environment themselves (:mod:`src.kernels.threads`).
 """
-
-import os
-
-# OpenMP threads that wait passively: on shared CPUs, spinning barriers of the compiled rasterizer
-# and torch stall when a partner thread is descheduled (measured 20x slowdowns under load). Must be
-# set before torch loads the OpenMP runtime; an explicit user setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-# ... after a short spin: a passive wait alone costs a futex sleep and wake-up per parallel region
-# or barrier (~30-60 us on these VMs, ~28 per render: ~15 % of a 10 k-splat render), while ~1 000
-# spins (a few us) catch most of them and waste little when the partner is descheduled (two renders
-# sharing 2 cores: within 10 % of the pure passive policy; 20 000 spins: 2.5x slower). libgomp only;
-# not applied when the user chose another wait policy.
-if os.environ["OMP_WAIT_POLICY"].upper() == "PASSIVE":
-    os.environ.setdefault("GOMP_SPINCOUNT", "1000")

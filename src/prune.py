@@ -17,6 +17,10 @@ chosen set). Static scenes only.
 
 from __future__ import annotations
 
+from src.kernels.threads import configure_openmp
+
+configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
+
 import argparse
 import math
 from pathlib import Path

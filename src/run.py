@@ -6,6 +6,10 @@ evaluates and writes the run record ``metrics.json`` (atomically, also when the 
 
 from __future__ import annotations
 
+from src.kernels.threads import configure_openmp
+
+configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
+
 import errno
 import logging
 import sys

@@ -13,6 +13,10 @@ renderer; install it with ``pip install -e ".[viewer]"``). Reads no checkpoint a
 
 from __future__ import annotations
 
+from src.kernels.threads import configure_openmp
+
+configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
+
 import argparse
 import json
 import math

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from src.kernels.threads import configure_openmp
+
+configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
+
 import pytest
 import torch
 

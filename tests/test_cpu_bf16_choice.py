@@ -1,4 +1,4 @@
-"""``autocast_bf16: auto`` takes bfloat16 only where it is native AND measured faster (src/utils/cpu.py)."""
+"""``autocast_bf16: auto`` takes bfloat16 only where it is native AND measured faster (src/kernels/cpu.py)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-import src.utils.cpu as cpu
+import src.kernels.cpu as cpu
 
 
 @pytest.fixture
@@ -28,7 +28,7 @@ def fake_cpu(monkeypatch):
 ])
 def test_auto_follows_flag_and_measured_speedup(fake_cpu, caplog, native, speedup, expected):
     fake_cpu(native, speedup)
-    with caplog.at_level("INFO", logger="src.utils.cpu"):
+    with caplog.at_level("INFO", logger="src.kernels.cpu"):
         assert cpu.bf16_pays_off("matmul") is expected
         assert cpu.resolve_autocast_bf16("auto", "conv") is expected
     assert f"matmul products in {'bfloat16' if expected else 'float32'}" in caplog.text  # the choice is logged

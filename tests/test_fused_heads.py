@@ -8,7 +8,7 @@ import torch
 
 from src.fields import CNNTriplaneBackbone, NoBackbone, OffsetFlow, SplatFieldNetwork
 from src.fields.head_kernel import cpu_has_amx
-from src.utils.cpu import cpu_has_native_bf16
+from src.kernels.cpu import cpu_has_native_bf16
 
 OUT_KEYS = ("means", "scales", "quats", "opacities", "colors", "canonical_deformed")
 

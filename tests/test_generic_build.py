@@ -31,7 +31,7 @@ SUBSET = [
 CHECK = """
 import sys
 import pytest
-from src.rasterizer._build import compile_flags, load_extension
+from src.kernels.build import compile_flags, load_extension
 assert "-mavx2" not in compile_flags(), compile_flags()
 assert not load_extension().has_avx2(), "the extension was built with AVX2"
 sys.exit(pytest.main(["-q", "-p", "no:cacheprovider", *sys.argv[1:]]))

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from src.fields import linear_relu as lr
-from src.utils.cpu import cpu_has_native_bf16
+from src.kernels.cpu import cpu_has_native_bf16
 from tests.conftest import rel_err
 
 

@@ -289,7 +289,7 @@ def test_backward_reads_strided_gradient_rows_in_place(dtype: torch.dtype):
     """Output gradients that are column views of one wide buffer (as the CPU rasterizer's backward
     hands them over: rows of [N, R]) give bit-identical gradients to contiguous copies; so do
     broadcast (stride-0) and transposed (non-contiguous rows, copied) gradients."""
-    from src.rasterizer._build import load_extension
+    from src.kernels.build import load_extension
     from src.rasterizer.projection_cpu import _camera_args
 
     s, cam = hard_scene(1003, 7, dtype)  # odd N: SIMD packs plus the scalar tail
@@ -442,7 +442,7 @@ def test_bench_reports_projection_times():
 def test_build_cache_key_is_stable():
     """The projection's cache directory is the one its build key names (torch's loader appends to
     the flag lists it is given; the keys must not depend on what was loaded before)."""
-    from src.rasterizer import _build as b
+    import src.kernels.build as b
 
     b.load_extension()
     key = b.build_key(b.projection_compile_flags(), b.PROJ_SOURCES)

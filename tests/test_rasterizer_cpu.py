@@ -152,7 +152,7 @@ def test_parity_mostly_culled_scene():
 
 def test_depth_order_wide_key_range_and_negative_depths():
     """Keys differing in every byte (all four radix digits), negative and tied depths."""
-    from src.rasterizer._build import load_extension
+    from src.kernels.build import load_extension
 
     g = torch.Generator().manual_seed(1)
     d = torch.cat([torch.rand(3000, generator=g) * 1e6, -torch.rand(500, generator=g) * 10,
@@ -383,7 +383,7 @@ def test_pair_statistics():
 
 
 def test_fast_exp_relative_error():
-    from src.rasterizer._build import load_extension
+    from src.kernels.build import load_extension
 
     x = torch.linspace(-87.0, 0.0, 200_001)
     y = load_extension().fast_exp(x)
@@ -396,7 +396,7 @@ def test_fast_exp_relative_error():
 def test_depth_order_is_stable_argsort(n: int, threads: int):
     """The radix sort equals a stable argsort (any thread count), with ties, invisible splats and a
     narrow key range (constant high digits)."""
-    from src.rasterizer._build import load_extension
+    from src.kernels.build import load_extension
 
     torch.set_num_threads(threads)  # the fixture restores the thread count
     g = torch.Generator().manual_seed(n)
@@ -437,7 +437,7 @@ def test_clear_errors():
     assert not nc.means.is_contiguous()
     CpuRasterizer().render(nc, cam)
     # the compiled op itself checks dtypes, shapes and contiguity
-    from src.rasterizer._build import load_extension
+    from src.kernels.build import load_extension
 
     ext = load_extension()
     n = 4
@@ -453,7 +453,7 @@ def test_clear_errors():
 
 
 def test_import_does_not_build():
-    code = ("import src.rasterizer.cpu, src.rasterizer._build as b; "
+    code = ("import src.rasterizer.cpu, src.kernels.build as b; "
             "assert b._module is None; print('ok')")
     res = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0 and "ok" in res.stdout, res.stderr

@@ -321,7 +321,7 @@ def test_extension_build_lock_left_by_a_killed_builder_is_cleared(tmp_path, monk
     must not wait for it forever (the kernel lock it takes first says no other builder is alive)."""
     from torch.utils import cpp_extension
 
-    from src.rasterizer import _build
+    import src.kernels.build as _build
 
     monkeypatch.setenv("SPLATFIELDS_EXT_DIR", str(tmp_path))
     flags = _build.projection_compile_flags()

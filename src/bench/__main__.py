@@ -4,13 +4,17 @@ Subcommands are registered in :data:`SUBCOMMANDS` (name -> ``main(argv) -> exit 
 ``rasterizer`` (a full run writes ``sweeps/results/bench/rasterizer.json`` and ``.png``) and
 ``training``. Modules are imported lazily so one subcommand's imports don't slow down another.
 
-``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` with a short spin (``GOMP_SPINCOUNT=1000``), set by the
-package (``src/__init__.py``, imported before this module and before torch; export
-``OMP_WAIT_POLICY=ACTIVE`` to override): on a shared, oversubscribed machine OpenMP threads that
+``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` with a short spin (``GOMP_SPINCOUNT=1000``), set at the
+top of this module before torch loads (``src/kernels/threads.py``; export ``OMP_WAIT_POLICY=ACTIVE`` to
+override): on a shared, oversubscribed machine OpenMP threads that
 spin at barriers while their partner is descheduled made 2-thread renders 10-20x slower.
 """
 
 from __future__ import annotations
+
+from src.kernels.threads import configure_openmp
+
+configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
 
 import importlib
 import sys

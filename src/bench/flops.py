@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import torch
 
-from src.utils.cpu import best_time
+from src.kernels.cpu import best_time
 
 CONV_OPS = ("convolution", "convolution_backward", "_convolution")
 MATMUL_OPS = ("mm", "addmm", "bmm", "baddbmm", "_linear_pointwise", "_scaled_dot_product_flash_attention",

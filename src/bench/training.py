@@ -493,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from src.bench.flops import measure_peaks
-    from src.utils.cpu import cpu_has_native_bf16
+    from src.kernels.cpu import cpu_has_native_bf16
 
     cuda = args.device.startswith("cuda")
     peaks = {"float32": measure_peaks(torch.float32, device=args.device)}

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from src.fields.triplane import TriplaneGenerator, split_plane_state, stack_generators, stack_plane_state
 from src.fields.triplane_sample import sample_planes
-from src.utils.cpu import resolve_autocast_bf16
+from src.kernels.cpu import resolve_autocast_bf16
 
 
 class FieldBackbone(nn.Module, ABC):
@@ -91,7 +91,7 @@ class CNNTriplaneBackbone(FieldBackbone):
         autocast_bf16: run the generators under bfloat16 autocast (float32 master weights; the planes
             come back in bfloat16 and ``sample`` reads them in the points' dtype): ``True``, ``False``
             or ``"auto"`` (on where the CPU multiplies bfloat16 natively AND a timed convolution shows
-            it faster than float32, ``src.utils.cpu``, and the weights are float32 on the CPU).
+            it faster than float32, ``src.kernels.cpu``, and the weights are float32 on the CPU).
         stack_planes: run the three generators as one network with their parameters stored stacked
             (grouped convolutions over the planes' stacked channels, ``TriplaneGenerator(planes=3)``,
             built by ``src.fields.triplane.stack_generators`` from the per-plane ones): the same

@@ -17,7 +17,7 @@ from torch import Tensor
 
 from src.fields.encoding import PositionalEncoding
 from src.fields.fused import input_row
-from src.rasterizer._build import field_op_ready
+from src.kernels.build import field_op_ready
 
 
 def row_op_ready() -> bool:

@@ -110,8 +110,8 @@ def head_packs(a: Sequence[Tensor], hidden: Sequence[Tensor], over_input: bool) 
 
 def _ops():
     """The kernel's ops (``torch.ops.splatfields_cpu``), built and loaded once per process (the compiled-extension
-    builder of the CPU rasterizer, ``src/rasterizer/_build.py``, builds it too)."""
-    from src.rasterizer._build import load_head_extension
+    builder of the CPU rasterizer, ``src/kernels/build.py``, builds it too)."""
+    from src.kernels.build import load_head_extension
 
     return load_head_extension()
 

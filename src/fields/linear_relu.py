@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from src.utils.cpu import cpu_has_native_bf16
+from src.kernels.cpu import cpu_has_native_bf16
 
 
 def _onednn_ok(h: Tensor) -> bool:

@@ -40,7 +40,7 @@ from src.fields.flows import Flow, quat_multiply_wxyz, rotmat_to_quat_wxyz
 from src.fields.fused import HeadInput, head_outputs, head_tail, head_weights, kernel_fits
 from src.fields.head_kernel import resolve_head_kernel
 from src.fields.mlp import FieldMLP, get_activation
-from src.utils.cpu import resolve_autocast_bf16
+from src.kernels.cpu import resolve_autocast_bf16
 
 SCALE_MODES = ("exp", "additive_quirk")
 
@@ -94,7 +94,7 @@ class SplatFieldNetwork(nn.Module):
             the reference path (same parameters and state dict, equal up to rounding).
         autocast_bf16: run the fused heads' products in bfloat16 (CPU autocast, float32 master weights,
             output linears in float32): ``True``, ``False`` or ``"auto"`` (on where the CPU multiplies
-            bfloat16 natively AND a timed matmul shows it faster than float32, ``src.utils.cpu``, and
+            bfloat16 natively AND a timed matmul shows it faster than float32, ``src.kernels.cpu``, and
             the inputs are float32 on the CPU). Fused path only.
         head_kernel: run each head (input, hidden and output layers) as one AMX-BF16 kernel
             (``src.fields.head_kernel``) when the fused heads run in bf16: ``"auto"`` (where the CPU has AMX),

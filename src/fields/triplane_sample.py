@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from src.rasterizer._build import field_op_ready
+from src.kernels.build import field_op_ready
 
 
 def sampler_ready() -> bool:

@@ -15,7 +15,7 @@ projection's compensation multiplies the opacities before compositing; same sema
 ``TorchRefRasterizer(antialiased=True)``).
 
 The extension is built on the first render (or :func:`ensure_built`), never at import; see
-:mod:`src.rasterizer._build` for the cache location and flags.
+:mod:`src.kernels.build` for the cache location and flags.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.rasterizer._build import load_extension, load_surfel_extension
+from src.kernels.build import load_extension, load_surfel_extension
 from src.rasterizer.base import Rasterizer, check_surfels
 from src.rasterizer.projection import project_for_render, project_splats
 from src.rasterizer.projection_cpu import project_splats_fused

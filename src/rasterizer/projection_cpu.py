@@ -21,7 +21,7 @@ In float32 the backward's chain rule runs in double from the float32 forward int
 gradients are slightly closer to the float64 truth than torch's float32 autograd; for splats whose
 covariance overflows float32 (scales ~1e20) the two may disagree on which gradients are non-finite.
 
-The extension is built on first use (see :mod:`src.rasterizer._build`).
+The extension is built on first use (see :mod:`src.kernels.build`).
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from src.core.cameras import Camera
-from src.rasterizer._build import load_extension
+from src.kernels.build import load_extension
 from src.rasterizer.projection import (
     AA_RATIO_MIN,
     EPS2D,

@@ -6,7 +6,7 @@ centres and oriented normals) is the torch one, differentiated by autograd; the 
 binning and compositing of colours, depth, normals and the depth distortion run in
 ``csrc/surfel_cpu.cpp`` (float32 and float64), whose backward returns the gradients w.r.t. T, the
 projected centres, the normals, the opacities and the colours. The extension is built on the first
-render (:func:`~src.rasterizer._build.load_surfel_extension`), never at import.
+render (:func:`~src.kernels.build.load_surfel_extension`), never at import.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from torch import Tensor
 
 from src.core.cameras import Camera
 from src.core.splats import Splats, SurfelRenderOutput
-from src.rasterizer._build import load_surfel_extension
+from src.kernels.build import load_surfel_extension
 from src.rasterizer.surfel_ref import project_surfels
 
 

@@ -18,7 +18,7 @@
 //   * visible additionally needs a non-empty 3DGS tile rect (centre means2d - 0.5) and finite means2d;
 //     radius 0 if not visible.
 // The forward repeats torch's float operations one by one in the same order and precision (this
-// file is built WITHOUT -ffast-math and with -ffp-contract=off, see _build.py), so means2d, conics,
+// file is built WITHOUT -ffast-math and with -ffp-contract=off, see src/kernels/build.py), so means2d, conics,
 // depths, radii and visible are bit-identical to the torch projection in float32 and float64.
 // Torch idioms reproduced: `fx / z` is reciprocal(z) * fx (Tensor.__rtruediv__), Python scalars
 // are cast to the tensor dtype, the quaternion norm sums squares sequentially, `.to(int32)` of

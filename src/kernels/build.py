@@ -44,10 +44,10 @@ from typing import Any
 
 import torch
 
-from src.utils.cpu import user_cache_dir
+from src.kernels.cpu import user_cache_dir
 from src.utils.runlock import exclusive
 
-CSRC = Path(__file__).resolve().parent / "csrc"
+CSRC = Path(__file__).resolve().parents[1] / "rasterizer" / "csrc"
 SOURCES = [CSRC / "rasterize_cpu.cpp"]
 HEADERS = [CSRC / "simd.h"]
 BASE_CFLAGS = ["-O3", "-ffast-math", "-fno-finite-math-only", "-ffp-contract=off", "-fopenmp"]
