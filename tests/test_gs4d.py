@@ -268,13 +268,17 @@ def test_split_samples_children_from_the_4d_gaussian():
         assert opt.optimizer.state.get(p) is None or opt.optimizer.state[p]["exp_avg"].shape == p.shape
 
 
-def test_prune_and_opacity_reset():
+def test_prune_opacity_reset_and_resume():
     m = _model(n=10)
     m.prune(None, torch.arange(10) < 3)
     assert m.n_splats == 7 and all(p.shape[0] == 7 for p in m.params.values())
     m.reset_opacity(None, 0.01)
     assert (m.opacity_values() <= 0.01 + 1e-6).all()
     assert m.max_scale().shape == (7,) and m.canonical_means().shape == (7, 3)
+    resumed = Gaussian4DModel(torch.rand(10, 3), n_frames=10)  # a checkpoint of another splat count loads
+    resumed.load_state_dict(m.state_dict())
+    for name, p in m.params.items():
+        torch.testing.assert_close(resumed.params[name], p)
 
 
 def test_initial_time_scale_follows_the_frame_spacing():
