@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 SWEEP_DIR = REPO / "sweeps"
 SWEEPS = sorted(p.stem for p in SWEEP_DIR.glob("*.yaml"))
 # Sweeps with 2 seeds: the CI smoke sweep, and the ingredient study (5 rows x 3 scenes of SplatFields runs).
-TWO_SEED_SWEEPS = ("smoke", "ablation_4view")
+TWO_SEED_SWEEPS = ("smoke", "ablation_4view", "fair_budget")
 # Configs some sweeps select that are not written yet: composing such a sweep is skipped, not failed.
 PENDING = ("dataset/dtu", "dataset/blender_mv", "dataset/dnerf")
 REPORT_FIELDS = {"title", "rows", "cols", "metrics", "higher_is_better", "quoted", "seed_key", "decimals"}
