@@ -28,10 +28,11 @@ def _compose(overrides: list[str]):
 
 
 def test_the_default_is_no_ingredient():
-    cfg = _compose([])
+    cfg = _compose(["+experiment=gs3d"])
     recipe = build(cfg.sparse)
     assert isinstance(recipe, SparseRecipe) and recipe.empty
-    assert set(OPTIONS) == {"none", "dropout", "opacity_decay", "dropout_decay", "binocular", "corgs"}
+    assert set(OPTIONS) == {"none", "dropout", "dropout_few_views", "opacity_decay", "dropout_decay", "binocular",
+                            "corgs"}
 
 
 @pytest.mark.parametrize("method", METHODS)
@@ -77,3 +78,13 @@ def test_each_papers_experiment_is_gs3d_with_its_ingredient(experiment, option, 
     a, b = flat(exp), flat(ref)
     diff = {k for k in a.keys() | b.keys() if a.get(k) != b.get(k)}
     assert diff - {"method", "experiment_name", "loss.method", "model.method"} == changed
+
+
+@pytest.mark.parametrize("experiment", [None, "+experiment=splatfields3d_mip"])
+@pytest.mark.parametrize("n_views,rate", [(3, 0.2), (4, 0.2), (6, 0.0), (8, 0.0)])
+def test_the_main_job_drops_splats_at_sparse_views_only(experiment, n_views, rate):
+    """DropGaussian in the main job's second stage at 4 views or fewer (chosen on validation views), rate 0 above."""
+    cfg = _compose([experiment, f"dataset.n_views={n_views}"])
+    recipe = build(cfg.sparse)
+    assert recipe.slots["dropout"].max_rate == rate
+    assert _compose([experiment, f"dataset.n_views={n_views}", "sparse=none"]).sparse.get("dropout") is None
