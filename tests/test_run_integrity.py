@@ -102,6 +102,11 @@ def test_shapes_may_differ_only_in_the_splat_count():
     assert "w has shape [4, 2] there, [8, 2] here" in shape_mismatch(
         saved, {"means": torch.zeros(5, 3), "w": torch.zeros(8, 2)}, 7, 5)
     assert "missing ['x']" in shape_mismatch(saved, {**saved, "x": torch.zeros(1)}, 7, 7)
+    assert shape_mismatch({**saved, "means": torch.zeros(7, 3, 2)}, saved, 7, 7) is not None  # another layout
+    assert shape_mismatch({"means": torch.zeros(7, 0, 3), "w": saved["w"]},
+                          {"means": torch.zeros(5, 15, 3), "w": saved["w"]}, 7, 5) is None  # SH distilled away
+    # buffers a model creates during training (LightGaussian's teacher) are the model's to load
+    assert shape_mismatch({**saved, "teacher": torch.zeros(7, 3)}, saved, 7, 7) is None
 
 
 @pytest.mark.parametrize("arg,needles", [

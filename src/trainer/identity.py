@@ -75,19 +75,20 @@ def shape_mismatch(saved: dict[str, torch.Tensor], current: dict[str, torch.Tens
     """What differs between two state dicts' parameter names and shapes, or None.
 
     A per-splat tensor (first dimension = the splat count, ``saved_n`` in the checkpoint and
-    ``current_n`` in the freshly built model) may differ in its first dimension: densification
-    changes the splat count during training.
+    ``current_n`` in the freshly built model) may differ in its sizes, not in its number of dimensions:
+    densification changes the splat count and some methods the per-splat layout during training
+    (LightGaussian distils its SH coefficients away); the network weights must match exactly. Entries
+    only the checkpoint has are left to the model's ``load_state_dict``: some are created during
+    training (LightGaussian's teacher buffers).
     """
     missing = sorted(set(current) - set(saved))
-    extra = sorted(set(saved) - set(current))
-    if missing or extra:
-        parts = ([f"missing {missing[:3]}"] if missing else []) + ([f"unexpected {extra[:3]}"] if extra else [])
-        return "its parameters differ (" + ", ".join(parts) + ")"
+    if missing:
+        return f"its parameters differ (missing {missing[:3]})"
     for k in current:
         a, b = tuple(saved[k].shape), tuple(current[k].shape)
         if a == b:
             continue
-        per_splat = len(a) == len(b) and a[:1] == (saved_n,) and b[:1] == (current_n,) and a[1:] == b[1:]
+        per_splat = len(a) == len(b) and a[:1] == (saved_n,) and b[:1] == (current_n,)
         if not per_splat:
             return f"parameter {k} has shape {list(a)} there, {list(b)} here"
     return None
