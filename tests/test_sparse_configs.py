@@ -12,7 +12,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 import src.run  # noqa: F401 - registers the ${repo:} resolver
-from src.init.stage1 import first_stage_config
+from src.init.stage1 import first_stage_config, has_ingredient, settings_digest
 from src.sparse import SparseRecipe
 from src.utils.instantiate import build
 
@@ -51,11 +51,16 @@ def test_a_slot_is_removed_with_null():
     assert build(cfg.sparse).empty
 
 
-def test_the_first_stage_of_a_two_stage_run_has_no_ingredient():
+def test_the_first_stage_of_a_two_stage_run_has_only_its_own_ingredient():
     cfg = _compose(["+experiment=splatfields3d_mip", "sparse=dropout"])
     assert cfg.sparse.dropout is not None
     c1 = first_stage_config(cfg)
-    assert c1.sparse is None and c1.method == "mip_splatting"
+    assert not has_ingredient(c1.sparse) and c1.method == "mip_splatting"
+    own = _compose(["+experiment=splatfields3d_mip", "sparse@stage1.sparse=dropout"])
+    c1_own = first_stage_config(own)
+    assert has_ingredient(c1_own.sparse) and c1_own.sparse.dropout.max_rate == 0.2
+    # a cached first stage trained without the ingredient is not taken for one trained with it
+    assert settings_digest(own) != settings_digest(cfg)
 
 
 @pytest.mark.parametrize("experiment,option,changed", [

@@ -49,7 +49,8 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
     Mirrors ``conf/experiment/gs3d.yaml`` (``stage1.method``: gs3d, or mip_splatting with
     ``protocol=two_stage_mip``): ``stage1.model`` / ``optim`` / ``strategy`` / ``init`` replace the run's;
     :data:`FIRST_STAGE_OVERRIDES`, then the (resolved) ``stage1.trainer`` and ``stage1.loss`` nodes
-    (conf/protocol/two_stage.yaml), replace keys of the run's trainer and loss; ``stage1.iterations``.
+    (conf/protocol/two_stage.yaml), replace keys of the run's trainer and loss; ``stage1.iterations``;
+    ``stage1.sparse`` (default ``none``) is its sparse-view ingredient, never the second stage's ``sparse``.
     """
     iterations = int(cfg.stage1.iterations)
     c = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
@@ -64,7 +65,7 @@ def first_stage_config(cfg: DictConfig) -> DictConfig:
         c.method = str(cfg.stage1.get("method", "gs3d"))
         c.trainer.iterations = iterations
         c.capacity = None
-        c.sparse = None  # a sparse-view ingredient (conf/sparse/) is the second stage's, never the cached first stage's
+        c.sparse = c.stage1.get("sparse")  # the first stage's own ingredient (stage1.sparse), never the second stage's
         del c["stage1"]
     return c
 
@@ -94,8 +95,15 @@ def settings_digest(cfg: DictConfig) -> str:
     c1 = first_stage_config(cfg)
     nodes = {"optim": c1.optim, "strategy": c1.strategy,
              **{g: cfg.stage1.get(g) for g in ("trainer", "loss")}}
+    if has_ingredient(c1.get("sparse")):  # digests of first stages without one stay as they were
+        nodes["sparse"] = c1.sparse
     nodes = {g: OmegaConf.to_container(n, resolve=True) if n is not None else None for g, n in nodes.items()}
     return hashlib.sha1(json.dumps(nodes, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+def has_ingredient(sparse: DictConfig | None) -> bool:
+    """Whether a ``sparse`` node (conf/sparse/) sets any ingredient slot (``none`` sets only its target)."""
+    return sparse is not None and any(k != "_target_" and v is not None for k, v in sparse.items())
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
