@@ -10,5 +10,7 @@ from src.strategy.base import NoDensification, Strategy
 from src.strategy.budget import BudgetStrategy
 from src.strategy.default import ADCStrategy
 from src.strategy.lightgaussian import LightGaussianStrategy
+from src.strategy.sugar import SugarStrategy
 
-__all__ = ["ADCStrategy", "AnchorStrategy", "BudgetStrategy", "LightGaussianStrategy", "NoDensification", "Strategy"]
+__all__ = ["ADCStrategy", "AnchorStrategy", "BudgetStrategy", "LightGaussianStrategy", "NoDensification", "Strategy",
+           "SugarStrategy"]
