@@ -283,6 +283,9 @@ def train_and_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device, rec
         record["curve_split"] = train_stats.get("curve_split")
     record["rasterizer"] = getattr(rasterizer, "name", type(rasterizer).__name__)
     write_baked_ply(model, run_dir, frames=scene_frames(scene))
+    if cfg.get("mesh"):  # mesh=poisson (SuGaR): <run>/mesh.ply of the baked splats, or why none was written
+        centres = torch.stack([v.camera.center for v in scene.train])  # [C, 3] training cameras
+        record["mesh"] = build(cfg.mesh).write(model.bake(), centres, run_dir)
     if (run_dir / BAKED_PLY).is_file():  # the splat set's size on disk in the 3DGS PLY layout (MiB)
         record["metrics"]["size_mb_ply"] = (run_dir / BAKED_PLY).stat().st_size / 2**20
     record["status"] = "ok"
