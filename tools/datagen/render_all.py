@@ -29,6 +29,7 @@ import dynamic_scenes  # noqa: E402
 JOBS.update(dynamic_scenes.JOBS)
 JOBS["formats/dtu_neus/trinkets"] = lambda out, limit: static_scenes.render_dtu("trinkets", out, limit)
 
+import capture_scenes  # noqa: E402
 import heldout_scenes  # noqa: E402
 
 # Held-out scenes: rendered only when named (--only heldout/NAME), never part of the shipped data/.
@@ -37,6 +38,9 @@ HELDOUT_JOBS = {
                                       group="heldout")
     for n in heldout_scenes.HELDOUT_SCENES
 }
+# Photo captures: rendered only when named (--only captures/room); their COLMAP model is built afterwards, in the
+# project's environment, by `python -m src.data.sfm data/captures/room/images data/captures/room`.
+CAPTURE_JOBS = dict(capture_scenes.JOBS)
 
 
 def main(argv=None):
@@ -61,9 +65,10 @@ def main(argv=None):
             ap.error(f"--res {args.res}: name an --out directory; data/ holds the shipped {common.RES} px scenes")
         common.RES = args.res
     if args.list:
-        print("\n".join([*JOBS, *(f"{n}  (held out: only when named)" for n in HELDOUT_JOBS)]))
+        print("\n".join([*JOBS, *(f"{n}  (held out: only when named)" for n in HELDOUT_JOBS),
+                         *(f"{n}  (photo capture: only when named)" for n in CAPTURE_JOBS)]))
         return
-    jobs = {**JOBS, **HELDOUT_JOBS}
+    jobs = {**JOBS, **HELDOUT_JOBS, **CAPTURE_JOBS}
     names = args.only or list(JOBS)
     unknown = [n for n in names if n not in jobs]
     if unknown:
