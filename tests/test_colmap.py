@@ -30,6 +30,7 @@ from src.data.colmap import ColmapDataset, llff_split, spread
 from src.data.images import read_image, write_png
 from src.init import SfmInit
 from src.losses.objective import SplatLoss
+from tests.alignment import similarity_residual
 
 REPO = Path(__file__).resolve().parents[1]
 PLANT = REPO / "data" / "static" / "plant"
@@ -387,18 +388,6 @@ def toy_cameras(n: int = 12) -> list[Camera]:
         w2c = look_at(eye, torch.tensor([0.0, 0.3, 0.5], dtype=torch.float64))
         cams.append(Camera(w2c, fx=TOY_FOCAL, fy=TOY_FOCAL, cx=TOY_W / 2, cy=TOY_H / 2, width=TOY_W, height=TOY_H))
     return cams
-
-
-def similarity_residual(src: torch.Tensor, dst: torch.Tensor) -> float:
-    """Largest distance between ``dst`` [N, 3] and the best similarity transform of ``src`` [N, 3] (Umeyama)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sing, vt = torch.linalg.svd(b.T @ a)
-    d = torch.ones(3, dtype=src.dtype)
-    d[2] = torch.sign(torch.linalg.det(u @ vt))
-    rot = u @ torch.diag(d) @ vt
-    scale = (sing * d).sum() / (a ** 2).sum()
-    return float((scale * a @ rot.T - b).norm(dim=1).max())
 
 
 @pytest.mark.slow
