@@ -8,7 +8,9 @@ import random
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -25,6 +27,9 @@ from src.trainer.identity import mismatch, shape_mismatch
 from src.utils.interrupt import RunInterrupted, set_deferred, stop_requested
 from src.utils.record import atomic_write_bytes
 from src.utils.validate import compile_backend
+
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +59,41 @@ def set_numpy_rng_state(state: dict) -> None:
 def _mse_psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a.detach() - b) ** 2).mean())
     return math.inf if mse == 0 else -10 * math.log10(mse)
+
+
+@dataclass
+class _Fit:
+    """One call of :meth:`Trainer.fit`: what it trains with, and what it carries from step to step (and
+    across a resume: the timing sums, the curve, the training time so far)."""
+
+    model: SplatModel
+    scene: Scene
+    rasterizer: Rasterizer
+    loss_fn: Callable
+    optimizer: SplatOptimizer
+    strategy: Strategy
+    sparse: SparseIngredient | None
+    guard: DivergenceGuard
+    rng: random.Random  # view sampling
+    generator: torch.Generator  # every other draw of the run
+    ckpt_path: Path
+    writer: SummaryWriter | None = None  # None without ``tensorboard``
+    start: int = 0  # the first iteration of this call (a resumed checkpoint's iteration + 1)
+    prev_train_s: float = 0.0  # training seconds before this call (those of a resumed run)
+    t_start: float = 0.0  # perf_counter() at this call's start, moved on by the time spent scoring the curve
+    timing: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))  # seconds per part
+    n_timed: int = 0  # steps summed in ``timing``
+    points: list[dict] = field(default_factory=list)  # the curve: [{iteration, wall_s, psnr}]
+    psnr: float = math.nan  # the last step's training PSNR
+
+    def train_s(self) -> float:
+        """Training seconds so far (a resumed run's included, curve scoring excluded)."""
+        return self.prev_train_s + time.perf_counter() - self.t_start
+
+    def extra(self) -> dict:
+        """What a resume needs besides the model, optimiser, strategy and RNG states (a checkpoint's ``extra``)."""
+        return {"train_s": self.train_s(), "guard_running_psnr": self.guard.running_psnr, "curve": self.points,
+                "timing": dict(self.timing), "n_timed": self.n_timed}
 
 
 class Trainer:
@@ -267,124 +307,146 @@ class Trainer:
             raise ValueError(f"trainer.random_background=true needs masked training views; "
                              f"those of {scene.name} have none")
         guard = DivergenceGuard(**self.guard_cfg)
-        optimizer = make_optimizer(model)
-        model.bind(scene)
-        self.compile_networks(model)
-        strategy.bind(scene, rasterizer)
-        if sparse is not None:
-            sparse.bind(model, scene, rasterizer, self.iterations)
-        start = 0
-        prev_train_s = 0.0
-        resumed_timing: dict[str, float] = {}
-        resumed_n_timed = 0
-        points: list[dict] = []
+        fit = _Fit(model=model, scene=scene, rasterizer=rasterizer, loss_fn=loss_fn, optimizer=make_optimizer(model),
+                   strategy=strategy, sparse=sparse, guard=guard, rng=rng, generator=generator, ckpt_path=ckpt_path)
+        self._bind(fit)
         if not self.resume:
             self.set_aside(ckpt_path)
         elif ckpt_path.is_file():
-            ck = self.load_checkpoint(ckpt_path)
-            self.check_identity(ckpt_path, ck, model)
-            try:
-                model.load_state_dict(ck["model"])
-            except (RuntimeError, KeyError) as e:  # a layout the identity did not tell apart
-                raise CheckpointError(f"{ckpt_path}: its model state does not fit this model "
-                                      f"({str(e).splitlines()[0][:200]}); to start fresh and keep it aside, "
-                                      "re-run with trainer.resume=false") from None
-            optimizer = make_optimizer(model)
-            try:
-                optimizer.load_state_dict(ck["optimizer"])
-            except ValueError as e:  # another parameter list (e.g. saved by a version with another network layout)
-                raise CheckpointError(f"{ckpt_path}: its optimiser state does not match this model's parameters ({e}); "
-                                      "to start fresh and keep it aside, re-run with trainer.resume=false") from None
-            strategy.load_state_dict(ck["strategy"])
-            rng.setstate(ck["py_rng"])
-            torch.set_rng_state(ck["torch_rng"])
-            set_numpy_rng_state(ck["np_rng"])
-            generator.set_state(ck["generator"])
-            start = ck["iteration"] + 1
-            prev_train_s = ck["extra"].get("train_s", 0.0)
-            # Resume = the uninterrupted run: the guard's running PSNR decides when a run fails, and the
-            # timing sums make iter_ms cover the whole run (and defined if only evaluation was left).
-            guard.running_psnr = ck["extra"].get("guard_running_psnr")
-            resumed_timing, resumed_n_timed = ck["extra"].get("timing", {}), ck["extra"].get("n_timed", 0)
-            points = list(ck["extra"].get("curve", []))
-            log.info("resumed from %s at iteration %d", ckpt_path, start)
-
-        writer = None
+            self._resume_from(fit, make_optimizer)
         if self.tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
             # purge_step: TensorBoard drops the killed run's events from `start` on (no doubled curves).
-            writer = SummaryWriter(str(run_dir / "tb"), purge_step=start or None)
-        timing = defaultdict(float, resumed_timing)
-        n_timed = resumed_n_timed
-
-        def ckpt_extra() -> dict:  # everything besides model/optimizer/strategy/RNGs that a resume needs
-            return {"train_s": prev_train_s + time.perf_counter() - t_start, "guard_running_psnr": guard.running_psnr,
-                    "curve": points,
-                    "timing": dict(timing), "n_timed": n_timed}
-
-        t_start = time.perf_counter()
-        bar = tqdm(range(start, self.iterations), disable=not self.progress, dynamic_ncols=True,
-                   desc=f"train {getattr(model, 'method', '')}", initial=start, total=self.iterations)
-        psnr_val = math.nan
+            fit.writer = SummaryWriter(str(run_dir / "tb"), purge_step=fit.start or None)
+        fit.t_start = time.perf_counter()
+        bar = tqdm(range(fit.start, self.iterations), disable=not self.progress, dynamic_ncols=True,
+                   desc=f"train {getattr(model, 'method', '')}", initial=fit.start, total=self.iterations)
         groups = self.views_by_frame(scene)
         deferred_before = set_deferred(True)  # a signal now stops the loop between steps (src/utils/interrupt.py)
         for it in bar:
-            views = strategy.step_views(model, self.sample_views(groups, rng), it, generator)
-            background = scene.background
-            if self.random_background:
-                background = torch.rand(3, generator=generator).to(scene.background)
-                views = [v.on_background(background, scene.background) for v in views]
-            step = self.train_step(model, views, rasterizer, loss_fn, optimizer, strategy, guard, it, generator,
-                                   background, **({} if sparse is None else {"sparse": sparse}))
-            terms, renders, dens, lrs = step["terms"], step["renders"], step["dens"], step["lrs"]
-            psnr_val = step["psnr"]
-            if it > start:  # the first iteration includes one-off costs (JIT build, caches)
-                for k, v in step["timing"].items():
-                    timing[k] += v
-                n_timed += 1
-            if it % self.log_every == 0 or it == self.iterations - 1:
-                bar.set_postfix(loss=f"{float(terms['total'].detach()):.4f}", psnr=f"{psnr_val:.2f}", n=model.n_splats)
-                if not self.progress:
-                    log.info("iter %d/%d loss %.4f psnr %.2f splats %d", it, self.iterations,
-                             float(terms["total"].detach()), psnr_val, model.n_splats)
-                if writer is not None:
-                    for k, v in terms.items():
-                        writer.add_scalar(f"loss/{k}", float(v.detach()), it)
-                    writer.add_scalar("train/psnr", psnr_val, it)
-                    writer.add_scalar("train/n_splats", model.n_splats, it)
-                    for k, v in lrs.items():
-                        writer.add_scalar(f"lr/{k}", v, it)
-                    for k, v in dens.items():
-                        writer.add_scalar(f"densify/{k}", v, it)
-            if writer is not None and self.image_every and it % self.image_every == 0:
-                writer.add_image("train/render", renders[0].color.detach().clamp(0, 1), it, dataformats="HWC")
-                writer.add_image("train/gt", views[0].image, it, dataformats="HWC")
+            views, step = self._step(fit, groups, it)
+            self._log_step(fit, bar, it, views, step)
             if curve is not None and curve_every > 0 and ((it + 1) % curve_every == 0 or it == self.iterations - 1):
-                t_curve = time.perf_counter()
-                value = curve(model)
-                points.append({"iteration": it + 1, "wall_s": prev_train_s + t_curve - t_start, "psnr": value})
-                if writer is not None:
-                    writer.add_scalar("heldout/psnr", value, it)
-                t_start += time.perf_counter() - t_curve  # the scoring is not training time
-            if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
-                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra(),
-                                     self.identity)
-            if stop_requested() is not None:  # SIGINT / SIGTERM: stop after a whole step, resumable from here
-                bar.close()
-                self.save_checkpoint(ckpt_path, model, optimizer, strategy, it, rng, generator, ckpt_extra(),
-                                     self.identity)
-                raise RunInterrupted(stop_requested(), it + 1)
+                self._record_curve(fit, curve, it)
+            self._checkpoint_step(fit, bar, it)
         set_deferred(deferred_before)
         bar.close()
-        train_s = prev_train_s + time.perf_counter() - t_start
-        if self.iterations > start:
-            self.save_checkpoint(ckpt_path, model, optimizer, strategy, self.iterations - 1, rng, generator,
-                                 {**ckpt_extra(), "train_s": train_s}, self.identity)
-        if writer is not None:
-            writer.close()
-        n = max(n_timed, 1)
-        split = {f"{k}_ms": 1000 * v / n for k, v in timing.items()}
-        iter_ms = sum(split.values()) if n_timed else math.nan
-        return {"train_s": train_s, "iter_ms": iter_ms, "timing": split, "final_train_psnr": psnr_val,
-                "resumed_from": start, "curve": points}
+        return self._finish(fit)
+
+    def _bind(self, fit: _Fit) -> None:
+        """Bind the model, its networks' compilation, the strategy and the sparse ingredients to the scene."""
+        fit.model.bind(fit.scene)
+        self.compile_networks(fit.model)
+        fit.strategy.bind(fit.scene, fit.rasterizer)
+        if fit.sparse is not None:
+            fit.sparse.bind(fit.model, fit.scene, fit.rasterizer, self.iterations)
+
+    def _resume_from(self, fit: _Fit, make_optimizer: Callable[[SplatModel], SplatOptimizer]) -> None:
+        """Restore ``fit`` from its checkpoint: model, a new optimiser with its state, strategy, RNGs, counters."""
+        path = fit.ckpt_path
+        ck = self.load_checkpoint(path)
+        self.check_identity(path, ck, fit.model)
+        try:
+            fit.model.load_state_dict(ck["model"])
+        except (RuntimeError, KeyError) as e:  # a layout the identity did not tell apart
+            raise CheckpointError(f"{path}: its model state does not fit this model "
+                                  f"({str(e).splitlines()[0][:200]}); to start fresh and keep it aside, "
+                                  "re-run with trainer.resume=false") from None
+        fit.optimizer = make_optimizer(fit.model)
+        try:
+            fit.optimizer.load_state_dict(ck["optimizer"])
+        except ValueError as e:  # another parameter list (e.g. saved by a version with another network layout)
+            raise CheckpointError(f"{path}: its optimiser state does not match this model's parameters ({e}); "
+                                  "to start fresh and keep it aside, re-run with trainer.resume=false") from None
+        fit.strategy.load_state_dict(ck["strategy"])
+        fit.rng.setstate(ck["py_rng"])
+        torch.set_rng_state(ck["torch_rng"])
+        set_numpy_rng_state(ck["np_rng"])
+        fit.generator.set_state(ck["generator"])
+        fit.start = ck["iteration"] + 1
+        extra = ck["extra"]
+        fit.prev_train_s = extra.get("train_s", 0.0)
+        # Resume = the uninterrupted run: the guard's running PSNR decides when a run fails, and the
+        # timing sums make iter_ms cover the whole run (and defined if only evaluation was left).
+        fit.guard.running_psnr = extra.get("guard_running_psnr")
+        fit.timing = defaultdict(float, extra.get("timing", {}))
+        fit.n_timed = extra.get("n_timed", 0)
+        fit.points = list(extra.get("curve", []))
+        log.info("resumed from %s at iteration %d", path, fit.start)
+
+    def _step(self, fit: _Fit, groups: list[list[View]], it: int) -> tuple[list[View], dict]:
+        """One optimisation step at iteration ``it``: its views (on a random background if asked) and
+        :meth:`train_step`'s result; its time joins the timing sums (not the first step's)."""
+        views = fit.strategy.step_views(fit.model, self.sample_views(groups, fit.rng), it, fit.generator)
+        background = fit.scene.background
+        if self.random_background:
+            background = torch.rand(3, generator=fit.generator).to(fit.scene.background)
+            views = [v.on_background(background, fit.scene.background) for v in views]
+        step = self.train_step(fit.model, views, fit.rasterizer, fit.loss_fn, fit.optimizer, fit.strategy, fit.guard,
+                               it, fit.generator, background, **({} if fit.sparse is None else {"sparse": fit.sparse}))
+        fit.psnr = step["psnr"]
+        if it > fit.start:  # the first iteration includes one-off costs (JIT build, caches)
+            for k, v in step["timing"].items():
+                fit.timing[k] += v
+            fit.n_timed += 1
+        return views, step
+
+    def _log_step(self, fit: _Fit, bar: tqdm, it: int, views: list[View], step: dict) -> None:
+        """Progress bar, log line and TensorBoard scalars every ``log_every`` steps; images every ``image_every``."""
+        writer, model = fit.writer, fit.model
+        if it % self.log_every == 0 or it == self.iterations - 1:
+            loss = float(step["terms"]["total"].detach())
+            bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{fit.psnr:.2f}", n=model.n_splats)
+            if not self.progress:
+                log.info("iter %d/%d loss %.4f psnr %.2f splats %d", it, self.iterations, loss, fit.psnr,
+                         model.n_splats)
+            if writer is not None:
+                for k, v in step["terms"].items():
+                    writer.add_scalar(f"loss/{k}", float(v.detach()), it)
+                writer.add_scalar("train/psnr", fit.psnr, it)
+                writer.add_scalar("train/n_splats", model.n_splats, it)
+                for k, v in step["lrs"].items():
+                    writer.add_scalar(f"lr/{k}", v, it)
+                for k, v in step["dens"].items():
+                    writer.add_scalar(f"densify/{k}", v, it)
+        if writer is not None and self.image_every and it % self.image_every == 0:
+            writer.add_image("train/render", step["renders"][0].color.detach().clamp(0, 1), it, dataformats="HWC")
+            writer.add_image("train/gt", views[0].image, it, dataformats="HWC")
+
+    @staticmethod
+    def _record_curve(fit: _Fit, curve: Callable[[SplatModel], float], it: int) -> None:
+        """Score the model with ``curve`` after iteration ``it``; the scoring time is not training time."""
+        t_curve = time.perf_counter()
+        value = curve(fit.model)
+        fit.points.append({"iteration": it + 1, "wall_s": fit.prev_train_s + t_curve - fit.t_start, "psnr": value})
+        if fit.writer is not None:
+            fit.writer.add_scalar("heldout/psnr", value, it)
+        fit.t_start += time.perf_counter() - t_curve
+
+    def _save(self, fit: _Fit, iteration: int, extra: dict) -> None:
+        """Write the checkpoint of ``fit`` after ``iteration`` with ``extra`` (:meth:`_Fit.extra`)."""
+        self.save_checkpoint(fit.ckpt_path, fit.model, fit.optimizer, fit.strategy, iteration, fit.rng, fit.generator,
+                             extra, self.identity)
+
+    def _checkpoint_step(self, fit: _Fit, bar: tqdm, it: int) -> None:
+        """The periodic checkpoint (``ckpt_every``); on SIGINT / SIGTERM a checkpoint and RunInterrupted."""
+        if self.ckpt_every and (it + 1) % self.ckpt_every == 0 and it + 1 < self.iterations:
+            self._save(fit, it, fit.extra())
+        if stop_requested() is not None:  # SIGINT / SIGTERM: stop after a whole step, resumable from here
+            bar.close()
+            self._save(fit, it, fit.extra())
+            raise RunInterrupted(stop_requested(), it + 1)
+
+    def _finish(self, fit: _Fit) -> dict:
+        """The last checkpoint (if this call trained) and the statistics :meth:`fit` returns."""
+        train_s = fit.train_s()
+        if self.iterations > fit.start:
+            self._save(fit, self.iterations - 1, {**fit.extra(), "train_s": train_s})
+        if fit.writer is not None:
+            fit.writer.close()
+        n = max(fit.n_timed, 1)
+        split = {f"{k}_ms": 1000 * v / n for k, v in fit.timing.items()}
+        iter_ms = sum(split.values()) if fit.n_timed else math.nan
+        return {"train_s": train_s, "iter_ms": iter_ms, "timing": split, "final_train_psnr": fit.psnr,
+                "resumed_from": fit.start, "curve": fit.points}
