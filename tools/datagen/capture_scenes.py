@@ -16,8 +16,9 @@ Written into ``OUT/captures/room/``:
   and ``frames`` = [{"file": "IMG_0000.jpg", "c2w": 4 × 4 camera-to-world, **OpenCV** axes (x right,
   y down, z forward), world = Blender's (Z up, metres)}].
 
-Cycles on the CPU, 16 samples per pixel, OpenImageDenoise (albedo and normal passes), seed 0, two threads:
-about 5 s per photo on an idle 2-core machine.
+Cycles on the CPU, 8 samples per pixel, OpenImageDenoise (albedo and normal passes), seed 0, two threads:
+about 8 s of CPU per photo (14 s of wall time each on 2 cores shared with two training runs); the photos are
+byte-identical from run to run.
 """
 
 from __future__ import annotations
