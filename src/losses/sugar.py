@@ -37,14 +37,19 @@ from src.fields.flows import quat_to_rotmat_wxyz
 from src.losses.objective import SplatLoss
 
 EPS = 1e-10
+SCALE_MIN = 1e-6  # floor of the scales the density divides by: (offset / s)^2 stays finite in float32
 
 
 def opacity_entropy(opacities: Tensor) -> Tensor:
-    """Mean binary entropy -o log o - (1 - o) log(1 - o) of opacities [N] in [0, 1] (0 at 0 and 1, log 2 at 0.5)."""
+    """Mean binary entropy -o log o - (1 - o) log(1 - o) of opacities [N] in [0, 1] (~0 at 0 and 1, log 2 at 0.5).
+
+    The logarithms' arguments get 1e-10 (as SuGaR's code), so the gradient stays finite at opacities of
+    exactly 0 or 1 (a sigmoid underflows to 0 in float32 below logit -104).
+    """
     if opacities.numel() == 0:
         return opacities.new_zeros(())
     o = opacities.clamp(0.0, 1.0)
-    return -(torch.xlogy(o, o) + torch.xlogy(1.0 - o, 1.0 - o)).mean()
+    return -(o * torch.log(o + EPS) + (1.0 - o) * torch.log(1.0 - o + EPS)).mean()
 
 
 def depth_map(render: RenderOutput, far: Tensor | float) -> Tensor:
@@ -104,10 +109,11 @@ def gaussian_terms(points: Tensor, means: Tensor, rotations: Tensor, scales: Ten
     linear scales [S, K, 3], opacities [S, K]).
 
     Returns (contributions o exp(-m^2 / 2) [S, K], squared Mahalanobis distances m^2 [S, K], scaled local
-    offsets R^T (p - mu) / s^2 [S, K, 3]); the density d(p) is the sum of the contributions.
+    offsets R^T (p - mu) / s^2 [S, K, 3]); the density d(p) is the sum of the contributions. Scales are
+    floored at 1e-6 (world units, far below a pixel here).
     """
     local = local_offsets(points, means, rotations)
-    s = scales.clamp_min(EPS)
+    s = scales.clamp_min(SCALE_MIN)
     m2 = ((local / s) ** 2).sum(-1)
     return opacities * torch.exp(-0.5 * m2), m2, local / s**2
 
