@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
-from src.init.stage1 import ensure_first_stage
+from src.init.stage1 import check_second_stage_init, ensure_first_stage
 from src.io.compressed import COMPRESSED_FILE
 from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
 from src.trainer.fit import fit_scene
@@ -249,6 +249,7 @@ def record_failure(record: dict, e: BaseException, run_dir: Path) -> BaseExcepti
 def train_and_evaluate(cfg: DictConfig, run_dir: Path, device: torch.device, record: dict) -> None:
     """Load the scene, run the first stage / capacity search if configured, train, evaluate, write the
     splats; fills ``record`` (keys, views, metrics, curve, ...) and sets ``status: ok``."""
+    check_second_stage_init(cfg, (record.get("choices") or {}).get("init"))  # before check_targets names run_dir
     check_targets(cfg)  # every _target_ at every depth, before anything is built
     validate_run_config(cfg)
     if cfg.get("threads"):

@@ -2,7 +2,7 @@
 
 The experiments are the files of ``conf/experiment/``: a new file joins the matrix by itself. An
 experiment's readers follow from its composed config: the reader it composes with by default names its
-family (static: blender, dtu; multi-view dynamic: blender_mv, owlii; monocular dynamic: dnerf, nerfies),
+family (static: blender, dtu, colmap; multi-view dynamic: blender_mv, owlii; monocular dynamic: dnerf, nerfies),
 and a family is static exactly when the experiment's model does not model motion (``src.run.DYNAMIC_MODELS``
 or ``model.network.dynamic``). A combination that makes no sense fails with one line that says why (a static
 scene for a motion model, a reader that does not take the experiment's keys).
@@ -20,10 +20,12 @@ from src.run import DYNAMIC_MODELS, run
 from src.utils.instantiate import ConfigError
 from tests import format_writers as fw
 from tests.scenes import write_blender_scene
+from tests.test_colmap import write_model as write_colmap_model
 
 REPO = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))
-MEANT_FOR = {"static": ("blender", "dtu"), "multiview": ("blender_mv", "owlii"), "monocular": ("dnerf", "nerfies")}
+MEANT_FOR = {"static": ("blender", "dtu", "colmap"), "multiview": ("blender_mv", "owlii"),
+             "monocular": ("dnerf", "nerfies")}
 #: Experiments whose readers are not those of the family their default reader names (none today): name -> family.
 FAMILY_EXCEPTIONS: dict[str, str] = {}
 
@@ -81,7 +83,9 @@ def fixtures(tmp_path_factory) -> dict[str, Path]:
     fw.write_dnerf(base / "dnerf", n_train=6, n_val=1, n_test=2, size=16)
     fw.write_nerfies(base / "nerfies", n_train=6, n_val=2, size=(16, 12))
     write_blender_scene(base / "blender", n_train=8, n_test=2, size=16)
-    return {name: base / name for name in ("blender", "dtu", "blender_mv", "owlii", "dnerf", "nerfies")}
+    (base / "colmap").mkdir()
+    write_colmap_model(base / "colmap", "bin")  # a pycolmap-written model of photos without masks
+    return {name: base / name for name in ("blender", "dtu", "colmap", "blender_mv", "owlii", "dnerf", "nerfies")}
 
 
 def compose_run(experiment: str, dataset: str, root: Path, out: Path, *extra: str):
@@ -89,7 +93,7 @@ def compose_run(experiment: str, dataset: str, root: Path, out: Path, *extra: st
     overrides = [f"+experiment={experiment}", f"dataset={dataset}", f"dataset.root={root}",
                  f"paths.output_root={out}", "+ci=smoke", "trainer.iterations=2", "trainer.ckpt_every=0",
                  "dataset.downscale=1", "trainer.tensorboard=false", "eval.save_renders=false", *extra]
-    if dataset == "dtu":
+    if dataset in ("dtu", "colmap"):
         overrides.append("dataset.n_views=3")
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return compose(config_name="config", overrides=overrides)

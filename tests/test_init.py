@@ -106,3 +106,18 @@ def test_hull_without_masks_samples_the_box_or_refuses(scene, caplog):
         HullInit(n_points=10, without_masks="error")(unmasked, torch.Generator())
     with pytest.raises(ValueError, match="without_masks"):
         HullInit(without_masks="ignore")
+
+
+def test_hull_without_masks_starts_from_the_sfm_points_when_the_reader_has_them(scene, caplog):
+    from dataclasses import replace
+
+    points = torch.rand(50, 3, generator=torch.Generator().manual_seed(1)) - 0.5      # [P, 3]
+    unmasked = replace(scene, train=[replace(v, mask=None) for v in scene.train], meta={**scene.meta, "points": points})
+    kept = HullInit(n_points=400)(unmasked, torch.Generator().manual_seed(0))
+    assert torch.equal(kept, points) and "50 structure-from-motion points" in caplog.text
+    few = HullInit(n_points=20)(unmasked, torch.Generator().manual_seed(0))      # a uniform subsample of them
+    assert few.shape == (20, 3) and all(any(torch.equal(p, q) for q in points) for p in few)
+    boxed = HullInit(n_points=30, box=0.5, without_masks="box")(unmasked, torch.Generator().manual_seed(0))
+    assert boxed.shape == (30, 3) and boxed.abs().max() <= 0.5                    # "box" ignores the points
+    no_points = replace(unmasked, meta={**scene.meta, "points": points[:0]})
+    assert HullInit(n_points=30, box=0.5)(no_points, torch.Generator()).shape == (30, 3)

@@ -127,3 +127,20 @@ def test_first_stage_config_mirrors_the_gs3d_experiment():
                 if key == "model":  # field=none / flow=none leave empty placeholders that the gs3d model ignores
                     assert theirs.pop("flow") == {} and theirs.pop("network") == {"backbone": {}}
                 assert mine == theirs, (key, extra)
+
+
+@pytest.mark.parametrize("choice", ["sfm", "box"])
+def test_an_initialiser_for_the_second_stage_is_refused_naming_the_first_stages(choice):
+    from hydra import compose, initialize_config_module
+
+    from src.init.stage1 import check_second_stage_init
+    from src.utils.validate import ConfigValueError
+
+    with initialize_config_module("conf", version_base="1.3"):
+        chosen = compose("config", overrides=["+experiment=splatfields3d_mip", f"init={choice}"])
+        first = compose("config", overrides=["+experiment=splatfields3d_mip", f"init@stage1.init={choice}"])
+        single = compose("config", overrides=["+experiment=gs3d", f"init={choice}"])
+    with pytest.raises(ConfigValueError, match=rf"init={choice}: .*two-stage.*init@stage1.init={choice}$"):
+        check_second_stage_init(chosen, choice)
+    check_second_stage_init(first, "from_run")   # the first stage's own initialiser: fine
+    check_second_stage_init(single, choice)      # one stage: the run's initialiser

@@ -35,14 +35,16 @@ class HullInit(Initialiser):
             stays in place, as in OwlII); False = the union of the per-frame hulls, ``n_points`` split
             evenly over the frames (for subjects that travel further than their own width, where
             splats of frame 0 never overlap later frames and their gradients only fade them out).
-        without_masks: what to do when training views have no mask (Nerfies / NeRF-DS layouts):
-            ``"box"`` = sample the cube as ``init=box`` does, with a warning; ``"error"`` = refuse.
+        without_masks: what to do when training views have no mask: ``"sfm"`` = the structure-from-motion
+            points when the reader has them (``dataset=colmap``, as ``init=sfm``), else the box; ``"box"`` =
+            sample the cube as ``init=box`` does (Nerfies / NeRF-DS layouts); ``"error"`` = refuse. A warning
+            names the replacement.
     """
 
     def __init__(self, n_points: int = 100_000, threshold: float = 0.0, box: float = 1.0,
-                 first_frame_only: bool = True, without_masks: str = "box") -> None:
-        if without_masks not in ("box", "error"):
-            raise ValueError(f"init.without_masks must be 'box' or 'error', got {without_masks!r}")
+                 first_frame_only: bool = True, without_masks: str = "sfm") -> None:
+        if without_masks not in ("sfm", "box", "error"):
+            raise ValueError(f"init.without_masks must be 'sfm', 'box' or 'error', got {without_masks!r}")
         self.n_points = n_points
         self.threshold = threshold
         self.box = box
@@ -55,6 +57,11 @@ class HullInit(Initialiser):
             msg = f"init=hull needs masks, but scene {scene.name} has training views without one"
             if self.without_masks == "error":
                 raise ValueError(f"{msg}: use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
+            points = scene.meta.get("points")
+            if self.without_masks == "sfm" and points is not None and points.shape[0] > 0:
+                log.warning("%s: starting from its %d structure-from-motion points instead, as init=sfm does",
+                            msg, points.shape[0])
+                return SfmInit(self.n_points)(scene, generator)
             log.warning("%s: sampling the box [-%g, %g]^3 instead, as init=box does", msg, self.box, self.box)
             return BoxInit(self.n_points, self.box)(scene, generator)
         frames = sorted({v.camera.frame_id for v in views})

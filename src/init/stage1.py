@@ -43,6 +43,21 @@ FIRST_STAGE_OVERRIDES = {"trainer": {"views_per_step": 1, "random_background": F
                          "loss": {"lambda_norm": 0.0, "lambda_moran": 0.0}}
 
 
+def check_second_stage_init(cfg: DictConfig, init_choice: str | None) -> None:
+    """Refuse, in one line, an initialiser chosen for the second stage of a two-stage run.
+
+    A two-stage protocol's second stage always starts from its first stage's splats (``init=from_run``);
+    ``init=sfm`` (or ``box``, ``hull``) on the command line means the first stage's start:
+    ``init@stage1.init=sfm``. Without masks the first stage's hull already starts from the SfM points.
+    """
+    if cfg.get("stage1") is None or OmegaConf.select(cfg, "init._target_") == "src.init.FromRunInit":
+        return
+    name = init_choice or str(OmegaConf.select(cfg, "init._target_"))
+    raise ConfigValueError(
+        f"init={name}: experiment {cfg.get('experiment_name', 'default')!r} is two-stage, its second stage starts "
+        f"from the first stage's splats (init=from_run); start the first stage from it with init@stage1.init={name}")
+
+
 def first_stage_config(cfg: DictConfig) -> DictConfig:
     """``cfg`` with the model, optimiser, strategy, initialisation and losses of the first stage.
 
