@@ -96,50 +96,12 @@ def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera,
     Returns:
         Projected screen-space splats (differentiable in means, quats, scales).
     """
-    dt = means.dtype
-    w2c = camera.world_to_cam.to(device=means.device, dtype=dt)
+    w2c = camera.world_to_cam.to(device=means.device, dtype=means.dtype)
     R = w2c[:3, :3]
-    t = w2c[:3, 3]
-    px, py, pz = means.unbind(-1)
-    # camera-space centre, elementwise
-    tx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
-    ty = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
-    tz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    tx, ty, tz = _camera_space(means, R, w2c[:3, 3])
     visible = tz > NEAR_PLANE
     tz_safe = torch.where(visible, tz, torch.ones_like(tz))
-
-    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
-    # clamp the tangent to 1.3x the image half-extent on each side (3DGS uses the symmetric FoV)
-    lim_x_pos = FRUSTUM_CLAMP * (camera.width - cx) / fx
-    lim_x_neg = FRUSTUM_CLAMP * cx / fx
-    lim_y_pos = FRUSTUM_CLAMP * (camera.height - cy) / fy
-    lim_y_neg = FRUSTUM_CLAMP * cy / fy
-    xz = (tx / tz_safe).clamp(-lim_x_neg, lim_x_pos)
-    yz = (ty / tz_safe).clamp(-lim_y_neg, lim_y_pos)
-    # Jacobian of the perspective map at the clamped point: J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]]
-    j00 = fx / tz_safe
-    j02 = -fx * xz / tz_safe
-    j11 = fy / tz_safe
-    j12 = -fy * yz / tz_safe
-
-    c00, c01, c02, c11, c12, c22 = quat_scale_to_cov3d(quats, scales)
-    # T = J W (2x3), W = R
-    t00 = j00 * R[0, 0] + j02 * R[2, 0]
-    t01 = j00 * R[0, 1] + j02 * R[2, 1]
-    t02 = j00 * R[0, 2] + j02 * R[2, 2]
-    t10 = j11 * R[1, 0] + j12 * R[2, 0]
-    t11 = j11 * R[1, 1] + j12 * R[2, 1]
-    t12 = j11 * R[1, 2] + j12 * R[2, 2]
-    # Sigma2D = T Sigma T^T
-    u0 = t00 * c00 + t01 * c01 + t02 * c02
-    u1 = t00 * c01 + t01 * c11 + t02 * c12
-    u2 = t00 * c02 + t01 * c12 + t02 * c22
-    v0 = t10 * c00 + t11 * c01 + t12 * c02
-    v1 = t10 * c01 + t11 * c11 + t12 * c12
-    v2 = t10 * c02 + t11 * c12 + t12 * c22
-    a0 = u0 * t00 + u1 * t01 + u2 * t02  # Sigma2D before the filter
-    b = u0 * t10 + u1 * t11 + u2 * t12
-    c0 = v0 * t10 + v1 * t11 + v2 * t12
+    a0, b, c0 = _cov2d(_jacobian(tx, ty, tz_safe, camera), R, quat_scale_to_cov3d(quats, scales))
     a = a0 + eps2d
     c = c0 + eps2d
     det = a * c - b * b
@@ -151,21 +113,76 @@ def project_splats(means: Tensor, quats: Tensor, scales: Tensor, camera: Camera,
         det0 = a0 * c0 - b * b
         compensation = torch.sqrt(torch.clamp(det0 / det_safe, min=AA_RATIO_MIN))
 
-    u = fx * tx / tz_safe + cx
-    v = fy * ty / tz_safe + cy
+    u = camera.fx * tx / tz_safe + camera.cx
+    v = camera.fy * ty / tz_safe + camera.cy
     means2d = torch.stack([u, v], dim=-1)
-
-    with torch.no_grad():
-        mid = 0.5 * (a + c)
-        lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))
-        radii = torch.ceil(3.0 * torch.sqrt(lam)).to(torch.int32)
-        # tile rectangle in 3DGS pixel coordinates (pixel centres at integers): p = (u, v) - 0.5
-        rect = tile_rects(means2d.detach() - 0.5, radii, camera.width, camera.height)
-        touches = (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
-        visible = visible & touches & torch.isfinite(means2d.detach()).all(-1)
-        radii = torch.where(visible, radii, torch.zeros_like(radii))
+    radii, visible = _radii(means2d, a, c, det, visible, camera)
     return Projected(means2d=means2d, conics=conics, depths=tz, radii=radii, visible=visible,
                      compensation=compensation)
+
+
+def _camera_space(means: Tensor, R: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Camera-space coordinates (x, y, z), each [N], of world ``means`` [N, 3] under R [3, 3], t [3]."""
+    px, py, pz = means.unbind(-1)
+    tx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    ty = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    tz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    return tx, ty, tz
+
+
+def _jacobian(tx: Tensor, ty: Tensor, tz: Tensor, camera: Camera) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Non-zero entries (j00, j02, j11, j12), each [N], of the perspective map's Jacobian
+    J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] at the camera-space points (``tz`` > 0), the
+    tangents x/z, y/z clamped to 1.3x the image half-extent on each side (3DGS uses the symmetric FoV)."""
+    fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
+    lim_x_pos = FRUSTUM_CLAMP * (camera.width - cx) / fx
+    lim_x_neg = FRUSTUM_CLAMP * cx / fx
+    lim_y_pos = FRUSTUM_CLAMP * (camera.height - cy) / fy
+    lim_y_neg = FRUSTUM_CLAMP * cy / fy
+    xz = (tx / tz).clamp(-lim_x_neg, lim_x_pos)
+    yz = (ty / tz).clamp(-lim_y_neg, lim_y_pos)
+    return fx / tz, -fx * xz / tz, fy / tz, -fy * yz / tz
+
+
+def _cov2d(jac: tuple[Tensor, ...], R: Tensor, cov3d: tuple[Tensor, ...]) -> tuple[Tensor, Tensor, Tensor]:
+    """Sigma2D = T Sigma T^T, T = J W (W = R [3, 3]), before the filter: its entries (a, b, c), each [N].
+
+    ``jac``: :func:`_jacobian`'s (j00, j02, j11, j12); ``cov3d``: :func:`quat_scale_to_cov3d`'s six entries.
+    """
+    j00, j02, j11, j12 = jac
+    c00, c01, c02, c11, c12, c22 = cov3d
+    t00 = j00 * R[0, 0] + j02 * R[2, 0]
+    t01 = j00 * R[0, 1] + j02 * R[2, 1]
+    t02 = j00 * R[0, 2] + j02 * R[2, 2]
+    t10 = j11 * R[1, 0] + j12 * R[2, 0]
+    t11 = j11 * R[1, 1] + j12 * R[2, 1]
+    t12 = j11 * R[1, 2] + j12 * R[2, 2]
+    u0 = t00 * c00 + t01 * c01 + t02 * c02
+    u1 = t00 * c01 + t01 * c11 + t02 * c12
+    u2 = t00 * c02 + t01 * c12 + t02 * c22
+    v0 = t10 * c00 + t11 * c01 + t12 * c02
+    v1 = t10 * c01 + t11 * c11 + t12 * c12
+    v2 = t10 * c02 + t11 * c12 + t12 * c22
+    a = u0 * t00 + u1 * t01 + u2 * t02
+    b = u0 * t10 + u1 * t11 + u2 * t12
+    c = v0 * t10 + v1 * t11 + v2 * t12
+    return a, b, c
+
+
+@torch.no_grad()
+def _radii(means2d: Tensor, a: Tensor, c: Tensor, det: Tensor, visible: Tensor, camera: Camera
+           ) -> tuple[Tensor, Tensor]:
+    """(radii [N] int32, visible [N]): 3 sigma of the filtered 2D covariance's larger eigenvalue, 0 for a
+    splat that is culled, touches no tile or has a non-finite centre (``means2d`` [N, 2] in pixels)."""
+    mid = 0.5 * (a + c)
+    lam = mid + torch.sqrt(torch.clamp(mid * mid - det, min=0.1))
+    radii = torch.ceil(3.0 * torch.sqrt(lam)).to(torch.int32)
+    # tile rectangle in 3DGS pixel coordinates (pixel centres at integers): p = (u, v) - 0.5
+    rect = tile_rects(means2d.detach() - 0.5, radii, camera.width, camera.height)
+    touches = (rect[:, 2] > rect[:, 0]) & (rect[:, 3] > rect[:, 1])
+    visible = visible & touches & torch.isfinite(means2d.detach()).all(-1)
+    radii = torch.where(visible, radii, torch.zeros_like(radii))
+    return radii, visible
 
 
 def project_for_render(project, splats, camera: Camera, antialiased: bool, filter_2d: float
