@@ -32,7 +32,7 @@ from src.fields.flows import (
     se3_exp,
 )
 from src.fields.mlp import FieldMLP
-from src.fields.network import SplatFieldNetwork
+from src.fields.network import HeadSpec, SplatFieldNetwork
 from src.fields.resfield import ResFieldLinear
 from src.fields.triplane import TriplaneGenerator
 
@@ -43,6 +43,7 @@ __all__ = [
     "FieldBackbone",
     "FieldMLP",
     "Flow",
+    "HeadSpec",
     "MLPBackbone",
     "NoBackbone",
     "OffsetFlow",

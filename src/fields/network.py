@@ -25,7 +25,9 @@ PE(t) (``time_pe_levels``) is appended to every head's input only when ``dynamic
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from types import MappingProxyType
 from typing import Any
 
 import torch
@@ -45,42 +47,93 @@ from src.kernels.cpu import resolve_autocast_bf16
 SCALE_MODES = ("exp", "additive_quirk")
 
 
+@dataclass(frozen=True)
+class HeadSpec:
+    """One MLP head of the field (supplementary B.2).
+
+    Attributes:
+        layers: linear layers, the input and output ones included (``FieldMLP``'s ``n_layers``).
+        width: neurons of every hidden layer.
+        pe: positional-encoding levels of the position the head reads.
+        skips: linear indices before which the head's input is re-concatenated (``FieldMLP``).
+        zero_init: zero the output layer, so the head's output starts at 0 (the scale head's follows
+            ``scale_mode``).
+    """
+
+    layers: int
+    width: int
+    pe: int
+    skips: tuple[int, ...] = ()
+    zero_init: bool = False
+
+
+#: The heads and their defaults, B.2's sizes ("the same input as the colour MLP": PE 4 for every head).
+HEADS: Mapping[str, HeadSpec] = MappingProxyType({
+    "deform": HeadSpec(8, 128, 4, (4,), zero_init=True),  # "Deform MLP ... 8-layer MLP with 128 neurons"
+    "color": HeadSpec(6, 128, 4, (3,)),  # "Color Field ... 6-layer MLP with 128 neurons", view direction last
+    "scale": HeadSpec(5, 64, 4, (3,)),  # "Scale and Opacity Fields ... 5-layer 64-neuron MLPs"
+    "opacity": HeadSpec(5, 64, 4, (3,)),
+    "rotation": HeadSpec(4, 64, 4, (), zero_init=True),  # "Rotation Field ... 4-layer MLP", width 64
+    "flow": HeadSpec(8, 128, 4, (4,)),  # "Flow Field ... an architecture similar to Deform MLP"
+})
+#: The flat keywords ``<head>_<field>`` (the config's keys, e.g. ``color_width``) that set one field of a head.
+HEAD_KEYWORDS: tuple[str, ...] = (*(f"{h}_{f}" for h in HEADS for f in ("layers", "width", "pe", "skips")),
+                                  "deform_zero_init", "rotation_zero_init")
+
+
+def head_specs(heads: Mapping[str, HeadSpec] | None = None, **fields: Any) -> dict[str, HeadSpec]:
+    """Every head's spec: :data:`HEADS`, replaced by the specs in ``heads``, then the flat ``<head>_<field>``
+    keywords (:data:`HEAD_KEYWORDS`) applied to them.
+
+    Raises:
+        TypeError: a head or keyword that :data:`HEADS` / :data:`HEAD_KEYWORDS` do not hold.
+    """
+    specs = dict(HEADS)
+    for name, spec in (heads or {}).items():
+        if name not in specs or not isinstance(spec, HeadSpec):
+            raise TypeError(f"heads: expected a HeadSpec for each of {', '.join(HEADS)}, got {name!r}: {spec!r}")
+        specs[name] = spec
+    for key, value in fields.items():
+        if key not in HEAD_KEYWORDS:
+            raise TypeError(f"SplatFieldNetwork got an unexpected keyword argument {key!r}")
+        name, _, attr = key.partition("_")
+        specs[name] = replace(specs[name], **{attr: tuple(value) if attr == "skips" else value})
+    return specs
+
+
 class SplatFieldNetwork(nn.Module):
     """Per-splat field: canonical centres -> activated splat attributes (B.2).
 
-    Head defaults follow supplementary B.2 (layer counts include input and output linears; skip
-    indices are linear indices before which the input is re-concatenated, see ``FieldMLP``):
-    deform 8×128 PE 4, colour 6×128 PE 4, scale 5×64, opacity 5×64, rotation 4×64 (scale/opacity/
-    rotation take "the same input as the colour MLP", so PE 4), flow trunk like deform. For parity
-    with the reference code instead use: deform/colour 8×128 PE 6 skip (4,), scale 6×64 PE 4 skip (3,),
-    opacity 6×64 PE 3 skip (3,), rotation 5×64 PE 3 no skip, flow trunk 8×128 PE 6, time PE 3,
-    activation leaky_relu, output_act_quirk True, scale_mode additive_quirk, view_dependent False.
+    Head defaults follow supplementary B.2 (:data:`HEADS`; layer counts include input and output
+    linears; skip indices are linear indices before which the input is re-concatenated, see
+    ``FieldMLP``): deform 8×128 PE 4, colour 6×128 PE 4, scale 5×64, opacity 5×64, rotation 4×64
+    (scale/opacity/rotation take "the same input as the colour MLP", so PE 4), flow trunk like deform.
+    For parity with the reference code instead use: deform/colour 8×128 PE 6 skip (4,), scale 6×64 PE 4
+    skip (3,), opacity 6×64 PE 3 skip (3,), rotation 5×64 PE 3 no skip, flow trunk 8×128 PE 6, time PE
+    3, activation leaky_relu, output_act_quirk True, scale_mode additive_quirk, view_dependent False.
 
     Args:
         backbone: spatial feature backbone (``CNNTriplaneBackbone`` for SplatFields; default
             ``NoBackbone``, the pure-MLP ablation).
-        deform_layers, deform_width, deform_pe, deform_skips: position-residual MLP (B.2: 8, 128, 4).
-        color_layers, color_width, color_pe, color_skips: colour MLP (B.2: 6, 128, 4).
+        heads: :class:`HeadSpec` by head name (``deform``, ``color``, ``scale``, ``opacity``, ``rotation``,
+            ``flow``: the flow trunk); a head left out keeps its :data:`HEADS` default.
+        **head_fields: one field of one head as a flat keyword ``<head>_<field>`` (:data:`HEAD_KEYWORDS`,
+            the config's keys): ``<head>_layers``, ``<head>_width``, ``<head>_pe``, ``<head>_skips``;
+            ``deform_zero_init`` (zero the deform MLP's output layer so x_can = x at init: our choice, the
+            reference uses PyTorch's default init, a small random initial offset) and ``rotation_zero_init``
+            (every quaternion starts exactly at the identity: our choice; with the default init it starts
+            near it). Applied over ``heads``.
         view_dependent: feed PE(view direction) to the colour MLP's last layer (B.2, "akin to NeRF").
             Default True (paper); the reference code's default is False (view-independent colour).
         viewdir_pe: PE levels of the view direction (4).
-        scale_layers, scale_width, scale_pe, scale_skips: scale MLP (B.2: 5, 64).
-        opacity_layers, opacity_width, opacity_pe, opacity_skips: opacity MLP (B.2: 5, 64).
-        rotation_layers, rotation_width, rotation_pe, rotation_skips: rotation MLP (B.2: 4 layers;
-            width 64 as the reference).
-        flow_layers, flow_width, flow_pe, flow_skips: flow trunk (B.2: "similar to Deform MLP").
         n_frames: number of frames (ResField coefficient rows, DCT basis).
         dynamic: 4D model: time PE on every head input, ResField layers, flow.
         time_pe_levels: PE levels of time (B.2: 4; reference code: 3).
         rank: ResField rank of all heads (B.2: 40 for OwlII, 0 for monocular); ignored if static.
         flow: flow head (``src.fields.flows``) applied to x_can, dynamic only; None = no motion
-            beyond the time-conditioned deform MLP. Its ``hidden_dim`` must equal ``flow_width``.
+            beyond the time-conditioned deform MLP. Its ``hidden_dim`` must equal the flow trunk's width.
         deform_weight: multiplies the deform residual; 0 disables (and does not build) the deform MLP
             (reference: 0 for DTU front-facing scenes).
-        deform_zero_init: zero-init the deform MLP's output layer so x_can = x at init (our choice;
-            the reference uses PyTorch's default init, i.e. a small random initial offset).
-        rotation_zero_init: zero-init the rotation MLP's output layer so every quaternion starts
-            exactly at the identity (our choice; with default init it starts near the identity).
         activation: hidden activation of every head (``relu``; the reference uses ``leaky_relu``).
         output_act_quirk: apply LeakyReLU to every head's output layer before its output activation
             (reference behaviour; default False = paper intent).
@@ -106,48 +159,22 @@ class SplatFieldNetwork(nn.Module):
             it, everything beyond folded into 1/2 <= |k(x)| < 1.
     """
 
+    #: Keywords taken through ``**head_fields`` (``src.utils.instantiate`` checks config keys against them).
+    extra_keywords = HEAD_KEYWORDS
+
     def __init__(
         self,
         backbone: FieldBackbone | None = None,
-        # B.2 "Deform MLP ... 8-layer MLP with 128 neurons", PE 4 levels
-        deform_layers: int = 8,
-        deform_width: int = 128,
-        deform_pe: int = 4,
-        deform_skips: Sequence[int] = (4,),
-        # B.2 "Color Field ... 6-layer MLP with 128 neurons", view direction at the last layer
-        color_layers: int = 6,
-        color_width: int = 128,
-        color_pe: int = 4,
-        color_skips: Sequence[int] = (3,),
+        heads: Mapping[str, HeadSpec] | None = None,
+        *,
         view_dependent: bool = True,
         viewdir_pe: int = 4,
-        # B.2 "Scale and Opacity Fields ... 5-layer 64-neuron MLPs"
-        scale_layers: int = 5,
-        scale_width: int = 64,
-        scale_pe: int = 4,
-        scale_skips: Sequence[int] = (3,),
-        opacity_layers: int = 5,
-        opacity_width: int = 64,
-        opacity_pe: int = 4,
-        opacity_skips: Sequence[int] = (3,),
-        # B.2 "Rotation Field ... 4-layer MLP"
-        rotation_layers: int = 4,
-        rotation_width: int = 64,
-        rotation_pe: int = 4,
-        rotation_skips: Sequence[int] = (),
-        # B.2 "Flow Field ... an architecture similar to Deform MLP"
-        flow_layers: int = 8,
-        flow_width: int = 128,
-        flow_pe: int = 4,
-        flow_skips: Sequence[int] = (4,),
         n_frames: int = 1,
         dynamic: bool = False,
         time_pe_levels: int = 4,  # B.2: time "positionally encoded with 4 levels"
         rank: int = 0,  # B.2: ResFields rank 40 (OwlII), 0 (monocular)
         flow: Flow | None = None,
         deform_weight: float = 1.0,
-        deform_zero_init: bool = True,
-        rotation_zero_init: bool = True,
         activation: str = "relu",
         output_act_quirk: bool = False,
         scale_mode: str = "exp",
@@ -156,12 +183,15 @@ class SplatFieldNetwork(nn.Module):
         head_kernel: bool | str = False,
         contraction: str = "none",
         contraction_radius: float = 1.0,
+        **head_fields: Any,
     ) -> None:
         super().__init__()
         self.contraction = Contraction(contraction, contraction_radius)
         if scale_mode not in SCALE_MODES:
             raise ValueError(f"scale_mode must be one of {SCALE_MODES}, got {scale_mode!r}")
         get_activation(activation)  # validate
+        specs = head_specs(heads, **head_fields)
+        specs["scale"] = replace(specs["scale"], zero_init=scale_mode == "exp")
         self.backbone = backbone if backbone is not None else NoBackbone()
         self.n_frames = int(n_frames)
         self.dynamic = bool(dynamic)
@@ -169,54 +199,8 @@ class SplatFieldNetwork(nn.Module):
         self.deform_weight = float(deform_weight)
         self.scale_mode = scale_mode
         self.output_act_quirk = bool(output_act_quirk)
-
-        feat = self.backbone.feature_dim
         self.time_pe = PositionalEncoding(time_pe_levels) if self.dynamic else None
-        time_dim = self.time_pe.out_dim(1) if self.time_pe is not None else 0
-        eff_rank = int(rank) if self.dynamic else 0
-        common = dict(
-            activation=activation,
-            rank=eff_rank,
-            n_frames=self.n_frames if eff_rank > 0 else 0,
-            output_act_quirk=output_act_quirk,
-        )
-
-        def head(n_layers, width, pe_levels, skips, out_dim, **kw) -> tuple[PositionalEncoding, FieldMLP]:
-            pe = PositionalEncoding(pe_levels)
-            in_dim = pe.out_dim(3) + feat + time_dim  # PE(x) ++ feature ++ PE(t)
-            mlp = FieldMLP(in_dim, out_dim, n_layers, width, skips, **{**common, **kw})
-            return pe, mlp
-
-        if self.deform_weight != 0.0:
-            self.deform_pe, self.deform_mlp = head(
-                deform_layers, deform_width, deform_pe, deform_skips, 3, zero_init_output=deform_zero_init
-            )
-        else:
-            self.deform_pe, self.deform_mlp = None, None
-        self.viewdir_pe = PositionalEncoding(viewdir_pe) if self.view_dependent else None
-        vd_dim = self.viewdir_pe.out_dim(3) if self.viewdir_pe is not None else 0
-        self.color_pe, self.color_mlp = head(
-            color_layers, color_width, color_pe, color_skips, 3, last_layer_extra_dim=vd_dim
-        )
-        self.scale_pe, self.scale_mlp = head(
-            scale_layers, scale_width, scale_pe, scale_skips, 3, zero_init_output=scale_mode == "exp"
-        )
-        self.opacity_pe, self.opacity_mlp = head(opacity_layers, opacity_width, opacity_pe, opacity_skips, 1)
-        self.rotation_pe, self.rotation_mlp = head(
-            rotation_layers, rotation_width, rotation_pe, rotation_skips, 4,
-            zero_init_output=rotation_zero_init,
-        )
-
-        self.flow = flow if self.dynamic else None
-        if self.flow is not None and self.flow.uses_hidden:
-            if self.flow.hidden_dim != flow_width:
-                raise ValueError(f"flow.hidden_dim ({self.flow.hidden_dim}) != flow_width ({flow_width})")
-            # The trunk's output is a hidden feature: the hidden activation is applied to it in forward.
-            self.flow_pe, self.flow_mlp = head(
-                flow_layers, flow_width, flow_pe, flow_skips, flow_width, output_act_quirk=False
-            )
-        else:
-            self.flow_pe, self.flow_mlp = None, None
+        self._add_heads(specs, viewdir_pe, int(rank) if self.dynamic else 0, activation, flow)
         self._act = get_activation(activation)
         self.fused = bool(fused)
         self.autocast_bf16 = resolve_autocast_bf16(autocast_bf16, "matmul")
@@ -225,6 +209,44 @@ class SplatFieldNetwork(nn.Module):
         # (a non-persistent buffer only: the state dict is unchanged).
         self._shared_pe = PositionalEncoding(max(pe.n_levels for pe in self._xcan_heads()[1]))
         self.register_buffer("_identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]), persistent=False)
+
+    def _add_head(self, name: str, spec: HeadSpec, out_dim: int, shared: dict[str, Any], **kw: Any) -> None:
+        """Build head ``name`` as ``<name>_pe`` and ``<name>_mlp``, reading [PE(x), f, PE(t)].
+
+        ``shared``: the ``FieldMLP`` arguments of every head; ``kw``: this head's own, over them.
+        """
+        pe = PositionalEncoding(spec.pe)
+        time_dim = self.time_pe.out_dim(1) if self.time_pe is not None else 0
+        in_dim = pe.out_dim(3) + self.backbone.feature_dim + time_dim  # PE(x) ++ feature ++ PE(t)
+        args = {"zero_init_output": spec.zero_init, **shared, **kw}
+        mlp = FieldMLP(in_dim, out_dim, spec.layers, spec.width, spec.skips, **args)
+        setattr(self, f"{name}_pe", pe)
+        setattr(self, f"{name}_mlp", mlp)
+
+    def _add_heads(self, specs: dict[str, HeadSpec], viewdir_pe: int, rank: int, activation: str,
+                   flow: Flow | None) -> None:
+        """The heads in B.2's order (deform, colour, scale, opacity, rotation), the flow and its trunk."""
+        shared = dict(activation=activation, rank=rank, n_frames=self.n_frames if rank > 0 else 0,
+                      output_act_quirk=self.output_act_quirk)
+        if self.deform_weight != 0.0:
+            self._add_head("deform", specs["deform"], 3, shared)
+        else:
+            self.deform_pe, self.deform_mlp = None, None
+        self.viewdir_pe = PositionalEncoding(viewdir_pe) if self.view_dependent else None
+        vd_dim = self.viewdir_pe.out_dim(3) if self.viewdir_pe is not None else 0
+        self._add_head("color", specs["color"], 3, shared, last_layer_extra_dim=vd_dim)
+        self._add_head("scale", specs["scale"], 3, shared)
+        self._add_head("opacity", specs["opacity"], 1, shared)
+        self._add_head("rotation", specs["rotation"], 4, shared)
+        self.flow = flow if self.dynamic else None
+        width = specs["flow"].width
+        if self.flow is not None and self.flow.uses_hidden:
+            if self.flow.hidden_dim != width:
+                raise ValueError(f"flow.hidden_dim ({self.flow.hidden_dim}) != flow_width ({width})")
+            # The trunk's output is a hidden feature: the hidden activation is applied to it in forward.
+            self._add_head("flow", specs["flow"], width, shared, output_act_quirk=False)
+        else:
+            self.flow_pe, self.flow_mlp = None, None
 
     def prepare(self) -> Any:
         """Per-step backbone state (e.g. the tri-planes), to share across the views of one step."""

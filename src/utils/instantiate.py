@@ -101,16 +101,23 @@ def _resolve_target(target: str, where: str) -> Any:
 
 
 def _accepted(obj: Any) -> tuple[set[str] | None, list[str]]:
-    """(parameter names ``obj`` accepts by keyword, or None if it takes ``**kwargs``; names for messages)."""
+    """(parameter names ``obj`` accepts by keyword, or None if it takes any ``**kwargs``; names for messages).
+
+    A callable whose ``**kwargs`` take only certain names lists them in ``extra_keywords``
+    (``SplatFieldNetwork``'s flat head keys); they are checked as parameters.
+    """
     try:
         sig = inspect.signature(obj)
     except (TypeError, ValueError):
         return None, []
     params = [p for p in sig.parameters.values() if p.name != "self"]
+    extra: Any = ()
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
-        return None, [p.name for p in params]
+        extra = getattr(obj, "extra_keywords", None)
+        if extra is None:
+            return None, [p.name for p in params]
     by_name = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    names = [p.name for p in params if p.kind in by_name]
+    names = [p.name for p in params if p.kind in by_name] + list(extra)
     return set(names), names
 
 
