@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from src.core.cameras import Camera
 from src.core.splats import Splats
-from src.models.base import SplatModel
+from src.models.free import FreeSplatModel, logit
 from src.models.knn import knn_base_scale
 from src.models.sh import eval_sh, rgb_to_sh0
-from src.optim.adam import SplatOptimizer, replace_param_rows, swap_param
+from src.optim.adam import SplatOptimizer
 
 
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
-
-class GaussianSplatModel(SplatModel):
+class GaussianSplatModel(FreeSplatModel):
     """Free splats: means, log-scales, wxyz quaternions, logit-opacities, SH colour coefficients.
 
     Args:
@@ -50,21 +44,10 @@ class GaussianSplatModel(SplatModel):
             "means": nn.Parameter(init.float().clone()),
             "scales": nn.Parameter(scales.float()),
             "quats": nn.Parameter(quats),
-            "opacities": nn.Parameter(torch.full((n,), _logit(init_opacity))),
+            "opacities": nn.Parameter(torch.full((n,), logit(init_opacity))),
             "sh0": nn.Parameter(rgb_to_sh0(torch.full((n, 1, 3), float(init_color)))),
             "shN": nn.Parameter(torch.zeros(n, k - 1, 3)),
         })
-
-    @property
-    def n_splats(self) -> int:
-        return self.params["means"].shape[0]
-
-    def param_groups(self) -> list[dict]:
-        return [{"name": k, "params": [p]} for k, p in self.params.items()]
-
-    def on_step(self, iteration: int) -> None:
-        if self.sh_degree_interval > 0:
-            self.active_sh_degree = min(self.max_sh_degree, iteration // self.sh_degree_interval)
 
     def colors(self, camera: Camera | None, means: Tensor | None = None) -> Tensor:
         """[N, 3] colours seen from ``camera`` (SH at the active degree; DC only if camera is None).
@@ -92,56 +75,20 @@ class GaussianSplatModel(SplatModel):
                           quats=F.normalize(p["quats"], dim=-1), opacities=torch.sigmoid(p["opacities"]),
                           colors=self.colors(None))
 
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Load a checkpoint whose splat count may differ from the current one (resizes first)."""
-        for name in list(self.params.keys()):
-            key = f"params.{name}"
-            if key in state_dict and state_dict[key].shape != self.params[name].shape:
-                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key], device=self.params[name].device))
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
-
     # -- densification ---------------------------------------------------------------------
-    def canonical_means(self) -> Tensor:
-        return self.params["means"].detach()
-
-    def max_scale(self) -> Tensor:
-        return torch.exp(self.params["scales"].detach()).max(dim=1).values
-
-    def opacity_values(self) -> Tensor:
-        return torch.sigmoid(self.params["opacities"].detach())
-
-    def _edit(self, optimizer: SplatOptimizer | None, keep: Tensor | None,
-              new: dict[str, Tensor] | None) -> None:
-        n_new = 0 if new is None else next(iter(new.values())).shape[0]
-        for name in list(self.params.keys()):
-            old = self.params[name]
-            data = old.data if keep is None else old.data[keep]
-            if new is not None:
-                data = torch.cat([data, new[name].to(data)])
-            self.params[name] = replace_param_rows(optimizer, old, data, keep, n_new)
-
-    def densify(self, optimizer: SplatOptimizer | None, clone: Tensor, split: Tensor, n_split: int,
-                generator: torch.Generator) -> None:
-        """3DGS clone (copy) and split (``n_split`` children sampled from the parent, scale / 1.6)."""
+    def _split_children(self, idx: Tensor, n_split: int, generator: torch.Generator) -> dict[str, Tensor]:
+        """3DGS split: ``n_split`` children of each splat in ``idx``, sampled from its Gaussian, their scales
+        divided by 0.8 n_split."""
         p = {k: v.data for k, v in self.params.items()}
-        new = {k: v[clone] for k, v in p.items()}
-        if split.any():
-            idx = torch.nonzero(split).squeeze(1)
-            s = torch.exp(p["scales"][idx]).repeat(n_split, 1)
-            q = F.normalize(p["quats"][idx], dim=-1).repeat(n_split, 1)
-            samples = torch.randn(s.shape, generator=generator).to(s) * s
-            samples = F.pad(samples, (0, 3 - samples.shape[1]))  # [M, 3]; 2D surfels (two scales) sample in-plane
-            rot = _quat_to_rotmat(q)
-            children = {k: v[idx].repeat(n_split, *([1] * (v.ndim - 1))) for k, v in p.items()}
-            children["means"] = torch.einsum("nij,nj->ni", rot, samples) + p["means"][idx].repeat(n_split, 1)
-            children["scales"] = torch.log(s / (0.8 * n_split))
-            new = {k: torch.cat([new[k], children[k]]) for k in p}
-        self._edit(optimizer, None, new)
-        if split.any():
-            n_total = self.n_splats
-            keep = torch.ones(n_total, dtype=torch.bool, device=split.device)
-            keep[: split.shape[0]][split] = False
-            self._edit(optimizer, keep, None)
+        s = torch.exp(p["scales"][idx]).repeat(n_split, 1)
+        q = F.normalize(p["quats"][idx], dim=-1).repeat(n_split, 1)
+        samples = torch.randn(s.shape, generator=generator).to(s) * s
+        samples = F.pad(samples, (0, 3 - samples.shape[1]))  # [M, 3]; 2D surfels (two scales) sample in-plane
+        rot = _quat_to_rotmat(q)
+        children = {k: v[idx].repeat(n_split, *([1] * (v.ndim - 1))) for k, v in p.items()}
+        children["means"] = torch.einsum("nij,nj->ni", rot, samples) + p["means"][idx].repeat(n_split, 1)
+        children["scales"] = torch.log(s / (0.8 * n_split))
+        return children
 
     def _mcmc_opacity(self, targets: Tensor) -> Tensor:
         """Logit opacities shared by a target and its k copies: 1 - (1 - o)^(1 / (k + 1)) (3DGS-MCMC)."""
@@ -178,19 +125,6 @@ class GaussianSplatModel(SplatModel):
         new = {k: v.data[targets].clone() for k, v in self.params.items()}
         self._edit(optimizer, None, new)
         self._zero_moments(optimizer, targets)
-
-    def prune(self, optimizer: SplatOptimizer | None, mask: Tensor) -> None:
-        self._edit(optimizer, ~mask, None)
-
-    def reset_opacity(self, optimizer: SplatOptimizer | None, value: float) -> None:
-        """3DGS opacity reset: opacity = min(opacity, value), Adam moments of opacities zeroed."""
-        o = self.params["opacities"]
-        self._set_opacities(optimizer, torch.minimum(o.data, torch.full_like(o.data, _logit(value))))
-
-    def _set_opacities(self, optimizer: SplatOptimizer | None, logits: Tensor) -> None:
-        """Replace the opacity logits [N] by ``logits``, their Adam moments zeroed (an opacity reset)."""
-        self.params["opacities"] = swap_param(optimizer, self.params["opacities"],
-                                              nn.Parameter(logits.detach().clone()), torch.zeros_like)
 
 
 def _quat_to_rotmat(q: Tensor) -> Tensor:

@@ -31,15 +31,9 @@ from torch import Tensor, nn
 
 from src.core.cameras import Camera
 from src.core.splats import Splats
-from src.models.base import SplatModel
+from src.models.free import FreeSplatModel, logit
 from src.models.knn import knn_base_scale
 from src.models.sh import eval_sh, rgb_to_sh0
-from src.optim.adam import SplatOptimizer, replace_param_rows, swap_param
-
-
-def _logit(p: float) -> float:
-    return math.log(p / (1.0 - p))
-
 
 # -- 4D geometry ---------------------------------------------------------------------------------
 # Entry (r, c) of L(q) and R(q) in the (x, y, z, t) order is sign[r, c] * q[_MULT_INDEX[r, c]], q = (w, x, y, z):
@@ -200,7 +194,7 @@ class TimeSlice:
     dt: Tensor
 
 
-class Gaussian4DModel(SplatModel):
+class Gaussian4DModel(FreeSplatModel):
     """Free 4D Gaussians (the 4D-GS recipe): space-time means, 4D scales and rotations, 4D colour.
 
     Args:
@@ -250,21 +244,10 @@ class Gaussian4DModel(SplatModel):
             "scales": nn.Parameter(torch.cat([spatial.float(), torch.full((n, 1), math.log(sigma_t))], dim=1)),
             "quats": nn.Parameter(identity.clone()),
             "quats_r": nn.Parameter(identity.clone()),
-            "opacities": nn.Parameter(torch.full((n,), _logit(init_opacity))),
+            "opacities": nn.Parameter(torch.full((n,), logit(init_opacity))),
             "sh0": nn.Parameter(rgb_to_sh0(torch.full((n, 1, 3), float(init_color)))),
             "sh_rest": nn.Parameter(torch.zeros(n, k - 1, 3)),
         })
-
-    @property
-    def n_splats(self) -> int:
-        return self.params["means"].shape[0]
-
-    def param_groups(self) -> list[dict]:
-        return [{"name": k, "params": [p]} for k, p in self.params.items()]
-
-    def on_step(self, iteration: int) -> None:
-        if self.sh_degree_interval > 0:
-            self.active_sh_degree = min(self.max_sh_degree, iteration // self.sh_degree_interval)
 
     # -- slicing and colour ----------------------------------------------------------------------
     def rotations(self) -> Tensor:
@@ -333,34 +316,7 @@ class Gaussian4DModel(SplatModel):
         return Splats(means=sl.means.clone(), scales=sl.scales.clone(), quats=sl.quats.clone(),
                       opacities=sl.opacities.clone(), colors=self.colors(sl, None))
 
-    def load_state_dict(self, state_dict, strict: bool = True, assign: bool = False):
-        """Load a checkpoint whose splat count may differ from the current one (resizes first)."""
-        for name in list(self.params.keys()):
-            key = f"params.{name}"
-            if key in state_dict and state_dict[key].shape != self.params[name].shape:
-                self.params[name] = nn.Parameter(torch.empty_like(state_dict[key], device=self.params[name].device))
-        return super().load_state_dict(state_dict, strict=strict, assign=assign)
-
     # -- densification ---------------------------------------------------------------------------
-    def canonical_means(self) -> Tensor:
-        return self.params["means"].detach()
-
-    def max_scale(self) -> Tensor:
-        """[N] largest spatial scale (the time scale is not compared with the scene extent)."""
-        return torch.exp(self.params["scales"].detach()[:, :3]).max(dim=1).values
-
-    def opacity_values(self) -> Tensor:
-        return torch.sigmoid(self.params["opacities"].detach())
-
-    def _edit(self, optimizer: SplatOptimizer | None, keep: Tensor | None, new: dict[str, Tensor] | None) -> None:
-        n_new = 0 if new is None else next(iter(new.values())).shape[0]
-        for name in list(self.params.keys()):
-            old = self.params[name]
-            data = old.data if keep is None else old.data[keep]
-            if new is not None:
-                data = torch.cat([data, new[name].to(data)])
-            self.params[name] = replace_param_rows(optimizer, old, data, keep, n_new)
-
     def _split_children(self, idx: Tensor, n_split: int, generator: torch.Generator) -> dict[str, Tensor]:
         """``n_split`` children of each splat in ``idx``: 4D means sampled from the parent's 4D Gaussian,
         all four scales divided by 0.8 n_split (the reference's split in space and time)."""
@@ -373,25 +329,3 @@ class Gaussian4DModel(SplatModel):
         children["times"] = children["times"] + offsets[:, 3, 0]
         children["scales"] = torch.log(s4 / (0.8 * n_split))
         return children
-
-    def densify(self, optimizer: SplatOptimizer | None, clone: Tensor, split: Tensor, n_split: int,
-                generator: torch.Generator) -> None:
-        """3DGS clone (copy) and split, the split sampling the children in space-time."""
-        new = {k: v.data[clone] for k, v in self.params.items()}
-        if split.any():
-            children = self._split_children(torch.nonzero(split).squeeze(1), n_split, generator)
-            new = {k: torch.cat([new[k], children[k]]) for k in new}
-        self._edit(optimizer, None, new)
-        if split.any():
-            keep = torch.ones(self.n_splats, dtype=torch.bool, device=split.device)
-            keep[: split.shape[0]][split] = False
-            self._edit(optimizer, keep, None)
-
-    def prune(self, optimizer: SplatOptimizer | None, mask: Tensor) -> None:
-        self._edit(optimizer, ~mask, None)
-
-    def reset_opacity(self, optimizer: SplatOptimizer | None, value: float) -> None:
-        """3DGS opacity reset of the intrinsic opacities (before the time marginal); Adam moments zeroed."""
-        o = self.params["opacities"]
-        logits = torch.minimum(o.data, torch.full_like(o.data, _logit(value)))
-        self.params["opacities"] = swap_param(optimizer, o, nn.Parameter(logits.detach().clone()), torch.zeros_like)
