@@ -1,7 +1,8 @@
 """``python -m src.view RUN_DIR [--port 8080] [--host 127.0.0.1] [--frame ID] [--up +z]``
 
 Interactive 3D view, in the browser, of a finished run's baked splats (viser's Gaussian splat
-renderer; install it with ``pip install -e ".[viewer]"``). Reads no checkpoint and builds no model:
+renderer, drawn with WebGL; install it with ``pip install -r requirements-viewer-lock.txt -e ".[viewer]"``).
+Reads no checkpoint and builds no model:
 
 * ``RUN_DIR/splats.ply``: the baked splat set that ``src.run`` writes (3DGS PLY layout, see
   :mod:`src.io.ply`: log-scales, logit opacities, (w, x, y, z) quaternions, DC colours);
@@ -9,6 +10,9 @@ renderer; install it with ``pip install -e ".[viewer]"``). Reads no checkpoint a
   sets; the viewer then shows a time slider (and a play toggle) over them.
 
 ``RUN_DIR`` may also be a single ``.ply`` file. The URL to open is printed once the server listens.
+Without ``--port`` the server takes port 8080, or the first free one after it (and says which); a
+``--port`` that is taken is refused. A run on another machine: ``--host 0.0.0.0`` there, or an SSH tunnel
+``ssh -L 8080:localhost:8080 HOST`` and http://localhost:8080 here.
 """
 
 from __future__ import annotations
@@ -18,8 +22,10 @@ from src.kernels.threads import configure_openmp
 configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/threads.py)
 
 import argparse
+import errno
 import json
 import math
+import socket
 import sys
 import threading
 import time
@@ -36,6 +42,7 @@ from src.io.ply import BAKED_PLY, FRAMES_DIR, FRAMES_INDEX, BakedFrame, read_bak
 from src.utils.record import USAGE_ERROR, OneLineParser, cli_error, os_error_line
 
 INSTALL_HINT = 'pip install -e ".[viewer]"'
+DEFAULT_PORT = 8080  # without --port: this one, or the first free one after it
 _UP = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
        "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
 
@@ -140,6 +147,48 @@ def import_viser() -> Any:
     return viser
 
 
+def bind_error(host: str, port: int) -> OSError | None:
+    """Why a server cannot listen on ``host``:``port`` now (``errno.EADDRINUSE``: another process holds the
+    port), or None when it can: binds every address ``host`` resolves to as the viewer's server does
+    (``SO_REUSEADDR``, IPv6 sockets IPv6-only), then lets them go."""
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except OSError as e:  # socket.gaierror: a host name that does not resolve
+        return e
+    for family, kind, proto, _, address in infos:
+        try:
+            sock = socket.socket(family, kind, proto)
+        except OSError:  # an address family this machine lacks: the server skips it too
+            continue
+        with sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            try:
+                sock.bind(address)
+            except OSError as e:
+                return e
+    return None
+
+
+def _port_taken(host: str, port: int) -> ViewerError:
+    """The refusal of a ``--port`` that another process holds."""
+    return ViewerError(f"--port {port}: the port is in use on {host}; choose a free one (--port 0: any) or leave "
+                       f"--port out (then the first free port from {DEFAULT_PORT})")
+
+
+def _check_listen(host: str, port: int | None) -> None:
+    """ViewerError when the server could not listen on ``host`` at ``port`` (None: :data:`DEFAULT_PORT` or the
+    first free port after it, so only a host it cannot listen on is refused)."""
+    error = bind_error(host, DEFAULT_PORT if port is None else port)
+    if error is None or (port is None and error.errno == errno.EADDRINUSE):
+        return
+    if error.errno == errno.EADDRINUSE:
+        raise _port_taken(host, port)
+    raise ViewerError(f"--host {host} --port {port if port is not None else DEFAULT_PORT}: cannot listen there "
+                      f"({os_error_line(error)})")
+
+
 def _display_url(host: str, port: int) -> str:
     shown = "localhost" if host in ("0.0.0.0", "::", "") else host
     if ":" in shown:
@@ -148,9 +197,13 @@ def _display_url(host: str, port: int) -> str:
 
 
 class SplatViewer:
-    """A viser server showing a run's splats; dynamic runs get a time slider and a play toggle."""
+    """A viser server showing a run's splats; dynamic runs get a time slider and a play toggle.
 
-    def __init__(self, run: RunSplats, host: str = "127.0.0.1", port: int = 8080, frame: int | None = None,
+    ``port``: None listens on :data:`DEFAULT_PORT` or the first free port after it; a number on that port
+    only (0: any free one), ViewerError when it is taken.
+    """
+
+    def __init__(self, run: RunSplats, host: str = "127.0.0.1", port: int | None = None, frame: int | None = None,
                  up: str = "+z") -> None:
         self.run = run
         self._lock = threading.Lock()
@@ -167,11 +220,16 @@ class SplatViewer:
                                   f"{', '.join(map(str, ids))}")
             start = ids.index(frame)
         first = self._arrays(start)  # read before anything starts: a bad file fails fast
+        _check_listen(host, port)  # the server would move on to the next port, or try port after port
         viser = import_viser()
+        listen = DEFAULT_PORT if port is None else port
         try:
-            self.server = viser.ViserServer(host=host, port=port, verbose=False)
+            self.server = viser.ViserServer(host=host, port=listen, verbose=False)
         except OSError as e:
-            raise ViewerError(f"--host {host} --port {port}: cannot listen there ({os_error_line(e)})") from e
+            raise ViewerError(f"--host {host} --port {listen}: cannot listen there ({os_error_line(e)})") from e
+        if port and self.port != port:  # another process took the port after the check: the server moved on
+            self.server.stop()
+            raise _port_taken(host, port)
         self.server.scene.set_up_direction(up)
         position, look_at = initial_view(first["centers"], _UP[up])
         self.server.initial_camera.position = position
@@ -185,6 +243,11 @@ class SplatViewer:
             self.play = self.server.gui.add_checkbox("play", initial_value=False)
             self.slider.on_update(lambda _event: self.show(int(self.slider.value)))
         self.show(start)
+
+    @property
+    def port(self) -> int:
+        """The port the server listens on."""
+        return self.server.get_port()
 
     @property
     def url(self) -> str:
@@ -267,8 +330,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = OneLineParser(prog="python -m src.view", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run_dir", type=Path, help="a run directory (with splats.ply or frames/) or a .ply file")
-    ap.add_argument("--port", type=_port, default=8080,
-                    help="port to listen on (the next free one if taken; 0 = any)")
+    ap.add_argument("--port", type=_port, default=None,
+                    help=f"port to listen on, refused if taken (0 = any free one; default {DEFAULT_PORT}, or the "
+                         "first free one after it)")
     ap.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: all interfaces)")
     ap.add_argument("--frame", type=int, default=None, help="frame id to show first (dynamic runs)")
     ap.add_argument("--up", choices=sorted(_UP), default="+z", help="world up axis of the scene (default +z)")
@@ -278,8 +342,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     """Command line: serve RUN_DIR's splats until Ctrl+C.
 
-    Exit codes: 0 after Ctrl+C; 2 an unusable run directory, splat file or argument (one line naming
-    it); 1 the viewer is not installed.
+    Exit codes: 0 after Ctrl+C; 2 an unusable run directory, splat file or argument, a taken ``--port``
+    included (one line naming it); 1 the viewer is not installed.
     """
     args = parse_args(argv)
     try:
@@ -292,6 +356,8 @@ def main(argv: list[str] | None = None) -> int:
     if not run.dynamic and (run.record or {}).get("per_frame") is not None:
         what += (f" (dynamic run without {FRAMES_DIR}/{FRAMES_INDEX}: showing the splat set baked at time 0)")
     print(f"Viewing {what}", flush=True)
+    if args.port is None and viewer.port != DEFAULT_PORT:
+        print(f"Port {DEFAULT_PORT} is in use: listening on port {viewer.port}", flush=True)
     print(f"Open {viewer.url} in a browser (Ctrl+C stops the viewer)", flush=True)
     try:
         viewer.loop()

@@ -94,6 +94,21 @@ def test_malformed_ply_and_bad_frame_are_named(tmp_path, capsys):
     assert "--frame 1 needs per-frame PLYs" in capsys.readouterr().err
 
 
+def test_a_taken_port_is_refused_in_one_line(tmp_path):
+    """``--port N`` with N held by another process: one line naming the port, exit 2 (no move to N + 1)."""
+    run = _static_run(tmp_path / "run")
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        p = subprocess.run([sys.executable, "-m", "src.view", str(run), "--port", str(port)], cwd=ROOT,
+                           capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, p.stderr
+    lines = p.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"--port {port}: the port is in use" in lines[0], p.stderr
+    assert "Open http" not in p.stdout
+
+
 def test_run_contents_and_viser_arrays(tmp_path):
     run = find_run_splats(_dynamic_run(tmp_path / "dyn"))
     assert run.dynamic and [f.frame_id for f in run.frames] == [0, 1] and run.static is None
