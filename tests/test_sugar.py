@@ -6,7 +6,8 @@
 * the ideal SDF s* sqrt(-2 log d) against hand computations (one opaque flat Gaussian: the distance to its
   plane; a partly transparent one; d >= 1 gives 0), the density gradient against autograd, the samples'
   moments, the near-surface selection and the normal term of a flat Gaussian;
-* the loss windows, the prune (exactly the splats below the threshold, once, at its iteration);
+* the loss windows, the prune (exactly the splats below the threshold, once, at its iteration), and a run
+  resumed within the surface terms' window that draws the same samples as the uninterrupted one;
 * the mesh: points in the splats' planes with normals facing the cameras; without open3d the writer records
   why no mesh was written; with it, a sphere of flat splats gives a mesh on the sphere.
 """
@@ -22,7 +23,7 @@ import torch
 
 from src.core.cameras import Camera
 from src.core.splats import RenderOutput, Splats
-from src.data.base import View
+from src.data.base import Scene, View
 from src.fields.flows import quat_to_rotmat_wxyz
 from src.io.mesh import MESH_PLY, PoissonMesh, oriented_splat_points
 from src.losses.sugar import (
@@ -42,6 +43,8 @@ from src.models.gaussians import GaussianSplatModel
 from src.optim.adam import SplatOptimizer
 from src.rasterizer.torch_ref import TorchRefRasterizer
 from src.strategy.sugar import SugarStrategy, prune_below
+from src.trainer.trainer import Trainer
+from tests.conftest import random_camera
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -263,6 +266,50 @@ def test_strategy_prunes_once_at_its_iteration():
         stats = strategy.after_step(model, opt, it, g)
         assert ("sugar_prune" in stats) == (it == 2)
         assert model.n_splats == (4 if it < 2 else 2)
+
+
+# -- a resumed run -----------------------------------------------------------------------------------------------
+class _Recorded(SugarLoss):
+    """SugarLoss that records which terms each call returned."""
+
+    def __call__(self, *args, **kwargs):
+        terms = super().__call__(*args, **kwargs)
+        self.seen.append(set(terms))
+        return terms
+
+
+def _fit(run_dir, iterations: int) -> GaussianSplatModel:
+    """SuGaR on three random views: entropy from iteration 1, the prune after 3, the surface terms from 3."""
+    pts = (torch.rand(150, 3, generator=torch.Generator().manual_seed(3)) - 0.5) * 0.6
+    model = GaussianSplatModel(pts, sh_degree=0)
+    model.params["opacities"].data = torch.randn(150, generator=torch.Generator().manual_seed(4)) * 2  # logits
+    views = [View(camera=random_camera(16, 16, seed=20 + i), image=torch.rand(16, 16, 3, generator=torch.Generator(
+        ).manual_seed(i)), mask=None, image_id=i) for i in range(3)]
+    scene = Scene(name="tiny", train=views, val=[], test=views[:1], background=torch.ones(3), view_ids=[0, 1, 2])
+    loss = _Recorded(lambda_mask=0.0, entropy_from=1, sdf_from=3, flat_from=1, flat_weight=0.01, n_samples=64,
+                     k_neighbours=4)
+    loss.seen = []
+    strategy = SugarStrategy(prune_at=3, prune_opacity_hard=0.5, stop_iter=0, reset_every=0)
+    trainer = Trainer(iterations=iterations, log_every=1000, progress=False, tensorboard=False, ckpt_every=0,
+                      guard={"warmup": 10**6, "collapse_psnr": 0.0})
+    lr = {k: {"init": 1e-2} for k in model.params}
+    trainer.fit(model, scene, TorchRefRasterizer(), loss, lambda m: SplatOptimizer(m.param_groups(), lr), strategy,
+                run_dir=run_dir, generator=torch.Generator().manual_seed(0))
+    assert all({"sdf", "normal"} <= names for names in loss.seen[-2:])  # the surface terms drew samples
+    return model
+
+
+def test_a_resumed_run_draws_the_same_samples(tmp_path):
+    """The surface terms draw from torch's global generator, which checkpoints hold: resuming reproduces."""
+    torch.manual_seed(123)
+    full = _fit(tmp_path / "full", iterations=7)
+    assert 0 < full.n_splats < 150  # the prune acted
+    torch.manual_seed(123)  # as src.run seeds every run
+    _fit(tmp_path / "cut", iterations=5)  # its checkpoint after 5 iterations, in the surface terms' window
+    torch.manual_seed(789)  # another state: the checkpoint's must be restored
+    resumed = _fit(tmp_path / "cut", iterations=7)
+    for name, p in full.params.items():
+        assert torch.equal(p, resumed.params[name]), name
 
 
 # -- the mesh ----------------------------------------------------------------------------------------------------
