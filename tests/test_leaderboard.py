@@ -13,11 +13,13 @@ from typing import Any
 import pytest
 
 from src.reporting import load
+from src.reporting.collect import RunRecord
 from src.reporting.leaderboard import (
     Entry,
     Leaderboard,
     build_leaderboard,
     interpolate,
+    method_label,
     pareto_staircase,
     render_markdown,
     to_json,
@@ -247,3 +249,14 @@ def test_reference_without_leaderboard_is_refused(tmp_path: Path, capsys: pytest
     write_run(tmp_path, "gs")
     assert main([str(tmp_path), "--reference", "gs3d"]) == 2
     assert capsys.readouterr().err.strip() == "error: --reference needs --leaderboard"
+
+
+def test_method_label_names_the_ingredients_of_both_stages() -> None:
+    def label(choices: dict[str, str]) -> str:
+        return method_label(RunRecord({"experiment": "splatfields3d_mip", "choices": choices}))
+
+    assert label({"sparse": "none"}) == "splatfields3d_mip"
+    assert label({"sparse": "dropout_few_views", "sparse@stage1.sparse": "none"}) == \
+        "splatfields3d_mip + dropout_few_views"
+    assert label({"sparse": "dropout_few_views", "sparse@stage1.sparse": "dropout"}) == \
+        "splatfields3d_mip + dropout_few_views (first stage + dropout)"

@@ -84,10 +84,13 @@ def _number(value: Any) -> float | None:
 
 
 def method_label(record: RunRecord) -> str:
-    """``experiment`` (else ``method``), plus `` + <sparse>`` when ``choices.sparse`` is set and not ``none``."""
+    """``experiment`` (else ``method``), plus `` + <sparse>`` when ``choices.sparse`` is set and not ``none``,
+    plus `` (first stage + <sparse>)`` when a two-stage run's first stage has its own (``stage1.sparse``)."""
+    choices = record.data.get("choices") or {}
     name = str(record.data.get("experiment") or record.data.get("method") or "?")
-    sparse = (record.data.get("choices") or {}).get("sparse")
-    return f"{name} + {sparse}" if sparse not in (None, "", "none") else name
+    sparse, first = choices.get("sparse"), choices.get("sparse@stage1.sparse")
+    label = f"{name} + {sparse}" if sparse not in (None, "", "none") else name
+    return f"{label} (first stage + {first})" if first not in (None, "", "none") else label
 
 
 def budget_of(record: RunRecord) -> Budget:
