@@ -54,6 +54,7 @@ import os
 import statistics
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -317,7 +318,7 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
     for name in scenes:
         if name not in SCENES:
             raise ValueError(f"unknown scene {name!r}; choose from {sorted(SCENES)}")
-    from src.rasterizer.cpu import CpuRasterizer, ensure_built
+    from src.rasterizer.cpu import ensure_built
 
     ensure_built()
     rasts = _rasterizers()
@@ -329,74 +330,13 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
     log(f"fp32 sgemm peak: {peaks[0]:.1f} GFLOP/s, copy bandwidth {bws[0]:.1f} GB/s (torch threads: "
         f"{torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY', '')}; both re-measured "
         "before every row, floors use the best of the run)")
-    ref_ns_per_pair = 40.0  # prior, replaced by the first measured run
+    ref = _RefBudget(max_s=ref_max_s, max_gb=ref_max_gb)
     rows = []
     for scene, (width, n) in ((sc, size) for sc in scenes for size in sizes):
         if rows:
             peaks.append(measure_peak_gflops(reps=3))
             bws.append(measure_copy_gbps(reps=3))
-        splats, cam = SCENES[scene](n, width, seed)
-        loss = _Loss(cam, 3, seed=seed)
-        bg = torch.zeros(3)
-        counter = CpuRasterizer(count_pairs=True)
-        _, g_cpu = _fwd_bwd(counter, splats, cam, loss, bg, lambda: None)
-        st = counter.last_stats
-        contrib = int(st["contrib_pairs"])
-        ub = ref_upper_bound_pairs(splats, cam)
-        est_s = ub * ref_ns_per_pair * 1e-9
-        est_gb = ub * 100 / 1e9
-        names = [k for k in rasts if k != "torch_ref"]
-        run_ref = est_s <= ref_max_s and est_gb <= ref_max_gb
-        if run_ref:
-            names = ["torch_ref", *names]
-        times: dict[str, list[float]] = {k: [] for k in names}
-        g = torch.Generator().manual_seed(seed)
-        out_grads = (torch.randn(n, 2, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g))
-        proj_times: dict[str, list[float]] = {k: [] for k in PROJECTIONS}
-        for project in PROJECTIONS.values():  # warm-up
-            _proj_fwd_bwd(project, splats, cam, out_grads)
-        grads_ref = None
-        for k in names:  # warm-up (also the reference gradients)
-            dt, grads = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
-            if k == "torch_ref":
-                grads_ref = grads
-                ref_ns_per_pair = max(dt / max(ub, 1) * 1e9, 1.0)
-                times[k].append(dt)
-        for _ in range(reps):
-            for k in names:
-                if k == "torch_ref" and (len(times[k]) >= max(1, min(reps, 3)) or
-                                         (times[k] and times[k][0] > 5.0)):
-                    continue
-                dt, _ = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
-                times[k].append(dt)
-            for k, project in PROJECTIONS.items():
-                proj_times[k].append(_proj_fwd_bwd(project, splats, cam, out_grads))
-        stages = rasts["cpu"].last_stats  # stage times of the last timed cpu run
-        ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
-        ms_min = {k: 1e3 * min(v) for k, v in times.items()}
-        err = None
-        if grads_ref is not None:
-            err = max(float((g_cpu[a] - grads_ref[a]).norm() / grads_ref[a].norm().clamp_min(1e-30))
-                      for a in ATTRS)
-        row = {
-            "scene": scene,
-            "width": width,
-            "n_splats": n,
-            "ms": ms,
-            "ms_min": ms_min,
-            "speedup_vs_ref": (ms["torch_ref"] / ms["cpu"]) if "torch_ref" in ms else None,
-            "proj_ms": {k: 1e3 * statistics.median(v) for k, v in proj_times.items()},
-            "proj_ms_min": {k: 1e3 * min(v) for k, v in proj_times.items()},
-            "pixels": cam.width * cam.height,
-            "grad_rel_err": err,
-            "contrib_pairs": contrib,
-            "eval_pairs_fwd": int(st["eval_fwd"]),
-            "eval_pairs_bwd": int(st["eval_bwd"]),
-            "tile_pairs": int(st["tile_pairs"]),
-            "ref_upper_bound_pairs": ub,
-            "ref_skipped": None if run_ref else f"estimated {est_s:.0f} s / {est_gb:.1f} GB",
-            "cpu_stages_ms": {k: v for k, v in stages.items() if k.endswith("_ms")},
-        }
+        row = _measure_row(scene, width, n, seed, reps, rasts, ref, cuda_sync)
         set_floors(row, max(peaks), max(bws))  # the best so far; all rows are redone at the end
         rows.append(row)
         log(_format_row(row))
@@ -407,6 +347,96 @@ def run(sizes: list[tuple[int, int]], reps: int = 5, ref_max_s: float = 20.0, re
             "bytes_per_splat": BYTES_PER_SPLAT,
             "bytes_per_pixel": BYTES_PER_PIXEL, "threads": torch.get_num_threads(), "flops_per_pair": FLOPS_PER_PAIR,
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""), "rows": rows}
+
+
+@dataclass
+class _RefBudget:
+    """When the torch reference runs: only where its estimated time and memory stay within ``max_s`` /
+    ``max_gb``, estimated from the upper bound of its evaluated pairs at ``ns_per_pair`` (a prior,
+    replaced by each measured run)."""
+
+    max_s: float
+    max_gb: float
+    ns_per_pair: float = 40.0
+
+    def skipped(self, upper_bound_pairs: int) -> str | None:
+        """None when the reference runs for a row of ``upper_bound_pairs``, else why not."""
+        est_s = upper_bound_pairs * self.ns_per_pair * 1e-9
+        est_gb = upper_bound_pairs * 100 / 1e9
+        return None if est_s <= self.max_s and est_gb <= self.max_gb else f"estimated {est_s:.0f} s / {est_gb:.1f} GB"
+
+
+def _measure_row(scene: str, width: int, n: int, seed: int, reps: int, rasts: dict[str, Rasterizer],
+                 ref: _RefBudget, cuda_sync: Callable[[], None]) -> dict:
+    """One result row (floors not set): ``n`` splats of ``scene`` at ``width`` px, every rasterizer's
+    forward + backward and both projections timed ``reps`` times, the pairs counted by the CPU kernel."""
+    from src.rasterizer.cpu import CpuRasterizer
+
+    splats, cam = SCENES[scene](n, width, seed)
+    loss = _Loss(cam, 3, seed=seed)
+    bg = torch.zeros(3)
+    counter = CpuRasterizer(count_pairs=True)
+    _, g_cpu = _fwd_bwd(counter, splats, cam, loss, bg, lambda: None)
+    st = counter.last_stats
+    ub = ref_upper_bound_pairs(splats, cam)
+    skipped = ref.skipped(ub)
+    names = [k for k in rasts if k != "torch_ref"]
+    if skipped is None:
+        names = ["torch_ref", *names]
+    g = torch.Generator().manual_seed(seed)
+    out_grads = (torch.randn(n, 2, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g))
+    times, proj_times, grads_ref = _time_row(names, rasts, splats, cam, loss, bg, out_grads, reps, ub, ref, cuda_sync)
+    ms = {k: 1e3 * statistics.median(v) for k, v in times.items()}
+    err = None
+    if grads_ref is not None:
+        err = max(float((g_cpu[a] - grads_ref[a]).norm() / grads_ref[a].norm().clamp_min(1e-30)) for a in ATTRS)
+    return {
+        "scene": scene,
+        "width": width,
+        "n_splats": n,
+        "ms": ms,
+        "ms_min": {k: 1e3 * min(v) for k, v in times.items()},
+        "speedup_vs_ref": (ms["torch_ref"] / ms["cpu"]) if "torch_ref" in ms else None,
+        "proj_ms": {k: 1e3 * statistics.median(v) for k, v in proj_times.items()},
+        "proj_ms_min": {k: 1e3 * min(v) for k, v in proj_times.items()},
+        "pixels": cam.width * cam.height,
+        "grad_rel_err": err,
+        "contrib_pairs": int(st["contrib_pairs"]),
+        "eval_pairs_fwd": int(st["eval_fwd"]),
+        "eval_pairs_bwd": int(st["eval_bwd"]),
+        "tile_pairs": int(st["tile_pairs"]),
+        "ref_upper_bound_pairs": ub,
+        "ref_skipped": skipped,
+        "cpu_stages_ms": {k: v for k, v in rasts["cpu"].last_stats.items() if k.endswith("_ms")},  # the last timed run
+    }
+
+
+def _time_row(names: list[str], rasts: dict[str, Rasterizer], splats: Splats, cam: Camera, loss: _Loss, bg: Tensor,
+              out_grads: tuple[Tensor, Tensor, Tensor], reps: int, ub: int, ref: _RefBudget,
+              cuda_sync: Callable[[], None]) -> tuple[dict[str, list[float]], dict[str, list[float]], dict | None]:
+    """(seconds per rasterizer, seconds per projection, the reference's gradients or None): one warm-up of
+    each (the reference's counts, and sets ``ref.ns_per_pair``), then ``reps`` rounds over all of them
+    (the reference at most 3 times, once if its first run took over 5 s)."""
+    times: dict[str, list[float]] = {k: [] for k in names}
+    proj_times: dict[str, list[float]] = {k: [] for k in PROJECTIONS}
+    for project in PROJECTIONS.values():  # warm-up
+        _proj_fwd_bwd(project, splats, cam, out_grads)
+    grads_ref = None
+    for k in names:  # warm-up (also the reference gradients)
+        dt, grads = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
+        if k == "torch_ref":
+            grads_ref = grads
+            ref.ns_per_pair = max(dt / max(ub, 1) * 1e9, 1.0)
+            times[k].append(dt)
+    for _ in range(reps):
+        for k in names:
+            if k == "torch_ref" and (len(times[k]) >= max(1, min(reps, 3)) or (times[k] and times[k][0] > 5.0)):
+                continue
+            dt, _ = _fwd_bwd(rasts[k], splats, cam, loss, bg, cuda_sync)
+            times[k].append(dt)
+        for k, project in PROJECTIONS.items():
+            proj_times[k].append(_proj_fwd_bwd(project, splats, cam, out_grads))
+    return times, proj_times, grads_ref
 
 
 def set_floors(row: dict, peak_gflops: float, copy_gbps: float) -> None:

@@ -45,10 +45,22 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from src.bench import load_result
 from src.utils.record import OneLineParser, cli_error, os_error_line, output_file_problem, write_json
+
+if TYPE_CHECKING:  # annotations only: the command line parses its arguments before torch loads
+    import torch
+    from omegaconf import DictConfig
+
+    from src.core.cameras import Camera
+    from src.data.base import View
+    from src.models.base import SplatModel
+    from src.optim.adam import SplatOptimizer
+    from src.rasterizer.base import Rasterizer
 
 METHODS = ("gs3d", "mip_splatting", "splatfields3d_mip", "splatfields3d_2stage", "splatfields3d", "sf_mlp",
            "deformable3dgs", "owl_4view")  # mip_splatting: also the main job's first stage
@@ -82,40 +94,93 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
     synchronised step; ``ms``, the trainer's own split, then holds launch times, and ``split`` is
     synchronised at every mark).
     """
-    from dataclasses import replace
-    from types import SimpleNamespace
-
     import torch
+    from omegaconf import OmegaConf
+
+    from src.bench.flops import device_sync
+    from src.capacity import has_field
+    from src.utils.memory import peak_memory_mb
+    from src.utils.validate import compile_backend
+
+    cfg, dynamic = _bench_config(method, rasterizer, device, overrides)
+    dev = torch.device(device)
+    sync = device_sync(dev)
+    b = _bench_setup(cfg, dynamic, n_splats, width, dev)
+    model = b.model
+    steps = _time_steps(b, iters, warmup, sync)
+    field = has_field(cfg)
+    row = {"method": method, "head_width": int(cfg.field_budget.head_width) if field else None,
+           "plane_blocks": _plane_blocks(cfg),
+           "plane_px": getattr(model.network.backbone, "resolution", None) if field else None,
+           "overrides": list(overrides), "n_splats": model.n_splats,
+           "compile": compile_backend(OmegaConf.select(cfg, "trainer.compile", default=False)),
+           "has_network": bool(model.networks()), "first_step_ms": steps["first_step_ms"],
+           "head_kernel": bool(getattr(getattr(model, "network", None), "head_kernel", False)),
+           "n_params": model.n_params(), "rasterizer": getattr(b.rasterizer, "name", type(b.rasterizer).__name__),
+           "ms": steps["ms"], "iter_ms": steps["iter_ms"], "iter_ms_min": steps["iter_ms_min"], "device": dev.type}
+    row["backbone_ms"] = _backbone_ms(model, iters, sync) if field else None
+    row.update(_flops(model, b.view.camera, field))
+    row["split"] = _split(model, b.view, b.rasterizer, b.loss_fn, b.optimizer, iters, warmup, b.background, sync)
+    row["generator_ms"] = row["split"]["generator_fwd"] + row["split"]["generator_bwd"] if field else None
+    row["fps_baked"] = _fps_baked(model, b.rasterizer, b.view.camera.scaled(fps_width / width), b.background, sync)
+    row["peak_mem_mb"] = peak_memory_mb(dev) if dev.type == "cuda" else _rss_peak_mb()
+    return row
+
+
+def _bench_config(method: str, rasterizer: str, device: str, overrides: Sequence[str]) -> tuple[DictConfig, bool]:
+    """(config, dynamic): the composed config of ``method`` (an experiment) with the bench's rasterizer,
+    device and ``overrides``, and whether its model is dynamic.
+
+    Time the phase that dominates training: dynamic models (``model.network.dynamic``, or a model with a
+    ``warm_up``) at one of BENCH_FRAMES frames, with the deformation on (Deformable-3DGS keeps it off
+    during its warm-up; the warm-up is skipped here).
+    """
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     import src.run  # noqa: F401 - registers ${repo:}
-    from src.bench.flops import device_sync
-    from src.capacity import has_field
-    from src.core.cameras import Camera, look_at
-    from src.data.base import View
-    from src.strategy.base import NoDensification
-    from src.trainer.guard import DivergenceGuard
-    from src.trainer.trainer import Trainer
-    from src.utils.instantiate import build
-    from src.utils.memory import peak_memory_mb
-    from src.utils.validate import compile_backend
 
     conf = Path(__file__).resolve().parents[2] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(config_name="config",
                       overrides=[f"+experiment={method}", f"rasterizer={rasterizer}", f"device={device}", *overrides])
-    # Time the phase that dominates training: dynamic models at one of BENCH_FRAMES frames, with the
-    # deformation on (Deformable-3DGS keeps it off during its warm-up; the warm-up is skipped here).
     dynamic = bool(OmegaConf.select(cfg, "model.network.dynamic", default=False)) or "warm_up" in cfg.model
     if "warm_up" in cfg.model:
         cfg.model.warm_up = 0
+    return cfg, dynamic
+
+
+@dataclass
+class _Bench:
+    """What the timed steps run: the model, its loss, optimiser and rasterizer, one view, the background."""
+
+    model: SplatModel
+    rasterizer: Rasterizer
+    loss_fn: Callable
+    optimizer: SplatOptimizer
+    view: View  # one ``width`` px camera looking at the splats, a random target
+    background: torch.Tensor  # [3] on the model's device
+    generator: torch.Generator  # the steps' draws
+
+
+def _bench_setup(cfg: DictConfig, dynamic: bool, n_splats: int, width: int, dev: torch.device) -> _Bench:
+    """Build ``cfg``'s model at ``n_splats`` splats on a sphere shell, its loss, optimiser and rasterizer,
+    and one ``width`` px view of a random target (as the trainer does, the model is bound to it and its
+    networks compiled under ``trainer.compile``)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    import torch
+    from omegaconf import OmegaConf
+
+    from src.core.cameras import Camera, look_at
+    from src.data.base import View
+    from src.trainer.trainer import Trainer
+    from src.utils.instantiate import build
+
     g = torch.Generator().manual_seed(0)
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
-
-    dev = torch.device(device)
-    sync = device_sync(dev)
     model = build(cfg.model, init=pts.to(dev), n_frames=BENCH_FRAMES if dynamic else 1).to(dev)
     rasterizer = build(cfg.rasterizer)
     loss_fn = build(cfg.loss)
@@ -128,17 +193,27 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
         cam = replace(cam, frame_id=BENCH_FRAMES // 2, time=0.5)
     view = View(camera=cam, image=target, mask=(target[..., 0] > 0.5).float(), image_id=0)
     model.bind(SimpleNamespace(train=[view]))  # as the trainer does: the 3D filters read the training cameras
-    backend = OmegaConf.select(cfg, "trainer.compile", default=False)
-    Trainer(compile=backend).compile_networks(model)  # trainer.compile, as in training
+    Trainer(compile=OmegaConf.select(cfg, "trainer.compile", default=False)).compile_networks(model)
+    return _Bench(model, rasterizer, loss_fn, optimizer, view, torch.ones(3, device=dev), g)
+
+
+def _time_steps(b: _Bench, iters: int, warmup: int, sync: Callable[[], None]) -> dict:
+    """``warmup`` + ``iters`` calls of :meth:`Trainer.train_step`: ``ms`` (median per part of the timed
+    ones), ``iter_ms`` / ``iter_ms_min`` (median / fastest step: the parts' sum, on CUDA the synchronised
+    step) and ``first_step_ms`` (the first warm-up step, compilation included)."""
+    from src.strategy.base import NoDensification
+    from src.trainer.guard import DivergenceGuard
+    from src.trainer.trainer import Trainer
+
     guard = DivergenceGuard(check_grads=False, collapse_psnr=-math.inf)
     times: dict[str, list[float]] = {k: [] for k in PARTS}
     first_step_ms = None
     synced: list[float] = []  # [iters] ms of each timed step, the GPU waited for (CUDA)
-    bg = torch.ones(3, device=dev)
     for it in range(warmup + iters):
         sync()
         t0 = time.perf_counter()
-        step = Trainer.train_step(model, [view], rasterizer, loss_fn, optimizer, NoDensification(), guard, it, g, bg)
+        step = Trainer.train_step(b.model, [b.view], b.rasterizer, b.loss_fn, b.optimizer, NoDensification(), guard,
+                                  it, b.generator, b.background)
         sync()
         if it == 0:
             first_step_ms = 1000 * (time.perf_counter() - t0)
@@ -146,34 +221,26 @@ def measure(method: str, n_splats: int, iters: int, warmup: int, width: int, fps
             synced.append(1000 * (time.perf_counter() - t0))
             for k in PARTS:
                 times[k].append(1000 * step["timing"][k])
-    ms = {k: statistics.median(v) for k, v in times.items()}
-    totals = synced if dev.type == "cuda" else [sum(times[k][i] for k in PARTS) for i in range(iters)]
-    row = {"method": method, "head_width": int(cfg.field_budget.head_width) if has_field(cfg) else None,
-           "plane_blocks": _plane_blocks(cfg),
-           "plane_px": getattr(model.network.backbone, "resolution", None) if has_field(cfg) else None,
-           "overrides": list(overrides), "n_splats": model.n_splats,
-           "compile": compile_backend(backend), "has_network": bool(model.networks()), "first_step_ms": first_step_ms,
-           "head_kernel": bool(getattr(getattr(model, "network", None), "head_kernel", False)),
-           "n_params": model.n_params(), "rasterizer": getattr(rasterizer, "name", type(rasterizer).__name__),
-           "ms": ms, "iter_ms": statistics.median(totals), "iter_ms_min": min(totals), "device": dev.type}
-    row["backbone_ms"] = _backbone_ms(model, iters, sync) if has_field(cfg) else None
-    row.update(_flops(model, cam, has_field(cfg)))
-    row["split"] = _split(model, view, rasterizer, loss_fn, optimizer, iters, warmup, bg, sync)
-    row["generator_ms"] = row["split"]["generator_fwd"] + row["split"]["generator_bwd"] if has_field(cfg) else None
+    totals = synced if b.background.device.type == "cuda" else [sum(times[k][i] for k in PARTS) for i in range(iters)]
+    return {"ms": {k: statistics.median(v) for k, v in times.items()}, "iter_ms": statistics.median(totals),
+            "iter_ms_min": min(totals), "first_step_ms": first_step_ms}
+
+
+def _fps_baked(model: SplatModel, rasterizer: Rasterizer, camera: Camera, background: torch.Tensor,
+               sync: Callable[[], None], reps: int = 5) -> float:
+    """Frames per second of the baked model rendered to ``camera`` (after one untimed render)."""
+    import torch
+
     model.eval()
     with torch.no_grad():
         baked = model.bake()
-        fcam = cam.scaled(fps_width / width)
-        rasterizer.render(baked, fcam, bg)
+        rasterizer.render(baked, camera, background)
         sync()
         t0 = time.perf_counter()
-        reps = 5
         for _ in range(reps):
-            rasterizer.render(baked, fcam, bg)
+            rasterizer.render(baked, camera, background)
         sync()
-        row["fps_baked"] = reps / (time.perf_counter() - t0)
-    row["peak_mem_mb"] = peak_memory_mb(dev) if dev.type == "cuda" else _rss_peak_mb()
-    return row
+        return reps / (time.perf_counter() - t0)
 
 
 def _flops(model, cam, field: bool) -> dict:
@@ -441,7 +508,8 @@ def check_arguments(ap: argparse.ArgumentParser, args: argparse.Namespace) -> No
         ap.error("--rasterizer gsplat needs --device cuda")
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> OneLineParser:
+    """The command line's arguments (``--help``)."""
     ap = OneLineParser(prog="python -m src.bench training", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=None,
@@ -476,6 +544,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="do not run: print the table and draw the chart of this earlier --out file")
     ap.add_argument("--single", nargs=2, metavar=("METHOD", "N"), help=argparse.SUPPRESS)
     ap.add_argument("--override-single", action="append", default=[], help=argparse.SUPPRESS)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command line (module docstring): 0 when every row was measured, 1 when one failed, 2 for a bad argument."""
+    ap = _parser()
     args = ap.parse_args(argv)
     args.out = output_path(args.out, args.quick)
     check_outputs(ap, args)
@@ -490,17 +564,48 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [10_000] if args.quick else [int(x) for x in args.sizes.split(",")]
     if args.quick:
         args.iters, args.warmup = 3, 1
+    peaks = _peaks(args.device)
+    rows = _measure_rows(methods, sizes, args)
+    for r in rows:
+        base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
+                    None)
+        if base and "error" not in r:
+            r["ratio_vs_gs3d"] = r["iter_ms"] / base["iter_ms"]
+        if "error" not in r:
+            r["flop_floor_ms"] = flop_floor(r, peaks)
+            r["x_flop_floor"] = r["iter_ms"] / r["flop_floor_ms"] if r["flop_floor_ms"] > 0 else None
+    print_table(rows)
+    if args.out:
+        result = {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}}
+        try:
+            write_json(args.out, result)
+            print(f"wrote {args.out}")
+            _write_chart(result, chart_path(args))
+        except OSError as exc:
+            return cli_error(f"cannot write the output: {os_error_line(exc)}")
+    return 0 if all("error" not in r for r in rows) else 1
+
+
+def _peaks(device: str) -> dict[str, dict]:
+    """The matmul and conv peaks of ``device`` by dtype (``float32``, ``bfloat16``: the float32 ones where the
+    CPU has no native bf16), printed."""
     import torch
 
     from src.bench.flops import measure_peaks
     from src.kernels.cpu import cpu_has_native_bf16
 
-    cuda = args.device.startswith("cuda")
-    peaks = {"float32": measure_peaks(torch.float32, device=args.device)}
-    peaks["bfloat16"] = (measure_peaks(torch.bfloat16, device=args.device) if cuda or cpu_has_native_bf16()
+    cuda = device.startswith("cuda")
+    peaks = {"float32": measure_peaks(torch.float32, device=device)}
+    peaks["bfloat16"] = (measure_peaks(torch.bfloat16, device=device) if cuda or cpu_has_native_bf16()
                          else peaks["float32"])
     print("peaks GFLOP/s: " + ", ".join(f"{d} matmul {p['matmul_gflops']:.0f} conv {p['conv_gflops']:.0f}"
                                          for d, p in peaks.items()))
+    return peaks
+
+
+def _measure_rows(methods: list[str], sizes: list[int], args: argparse.Namespace) -> list[dict]:
+    """Every row, each in its own subprocess: the methods at the sizes as configured, then the variants
+    (head widths, plane blocks, compile, head kernel) of those that have the part; ``--repeat`` rounds."""
     def run(spec: tuple) -> dict:  # spec: (method, splats, overrides, variant) of one row
         return _run_isolated(spec[0], spec[1], args, spec[2], spec[3])
 
@@ -520,24 +625,7 @@ def main(argv: list[str] | None = None) -> int:
     rows += [run(spec) for spec in specs[len(rows):]]
     for _ in range(1, args.repeat):  # further rounds over all rows in the same order: drift hits every row alike
         rows = [faster_row(r, run(spec)) for r, spec in zip(rows, specs, strict=True)]
-    for r in rows:
-        base = next((b for b in rows if b["method"] == "gs3d" and b["n_splats"] == r["n_splats"] and "error" not in b),
-                    None)
-        if base and "error" not in r:
-            r["ratio_vs_gs3d"] = r["iter_ms"] / base["iter_ms"]
-        if "error" not in r:
-            r["flop_floor_ms"] = flop_floor(r, peaks)
-            r["x_flop_floor"] = r["iter_ms"] / r["flop_floor_ms"] if r["flop_floor_ms"] > 0 else None
-    print_table(rows)
-    if args.out:
-        result = {"rows": rows, "settings": vars(args) | {"out": str(args.out), "peaks": peaks}}
-        try:
-            write_json(args.out, result)
-            print(f"wrote {args.out}")
-            _write_chart(result, chart_path(args))
-        except OSError as exc:
-            return cli_error(f"cannot write the output: {os_error_line(exc)}")
-    return 0 if all("error" not in r for r in rows) else 1
+    return rows
 
 
 def chart_path(args: argparse.Namespace) -> Path | None:
