@@ -25,7 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
-from src.init.stage1 import check_second_stage_init, ensure_first_stage
+from src.init.stage1 import check_second_stage_init, ensure_first_stage, ingredient_tag
 from src.io.compressed import COMPRESSED_FILE
 from src.io.ply import BAKED_PLY, scene_frames, write_baked_ply
 from src.trainer.fit import fit_scene
@@ -58,6 +58,8 @@ def if_at_most(n: int | None, limit: int, then, otherwise):
 
 if not OmegaConf.has_resolver("if_at_most"):
     OmegaConf.register_new_resolver("if_at_most", if_at_most)
+if not OmegaConf.has_resolver("sparse_tag"):  # a first stage's ingredient in its cache directory's name
+    OmegaConf.register_new_resolver("sparse_tag", ingredient_tag)
 if not OmegaConf.has_resolver("times"):  # a schedule scaled with its budget (sweeps/fair_budget.yaml)
     OmegaConf.register_new_resolver("times", lambda a, b: round(float(a) * float(b)))
 

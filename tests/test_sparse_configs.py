@@ -59,8 +59,10 @@ def test_the_first_stage_of_a_two_stage_run_has_only_its_own_ingredient():
     own = _compose(["+experiment=splatfields3d_mip", "sparse@stage1.sparse=dropout"])
     c1_own = first_stage_config(own)
     assert has_ingredient(c1_own.sparse) and c1_own.sparse.dropout.max_rate == 0.2
-    # a cached first stage trained without the ingredient is not taken for one trained with it
+    # a cached first stage trained without the ingredient is not taken for one trained with it, nor stored with it
     assert settings_digest(own) != settings_digest(cfg)
+    plain_dir, own_dir = str(cfg.paths.stage1_dir), str(own.paths.stage1_dir)
+    assert own_dir == plain_dir + "_dropout" and own.init.run_dir == own_dir
 
 
 @pytest.mark.parametrize("experiment,option,changed", [

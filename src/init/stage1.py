@@ -121,6 +121,15 @@ def has_ingredient(sparse: DictConfig | None) -> bool:
     return sparse is not None and any(k != "_target_" and v is not None for k, v in sparse.items())
 
 
+def ingredient_tag(sparse: DictConfig | None) -> str:
+    """``""``, or ``_`` and the set ingredient slots of a ``sparse`` node joined by ``+`` (``_dropout``): the
+    suffix of a first stage's cache directory (``paths.stage1_dir``), so that first stages with and without
+    an ingredient never share one."""
+    if not has_ingredient(sparse):
+        return ""
+    return "_" + "+".join(str(k) for k, v in sparse.items() if k != "_target_" and v is not None)
+
+
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
     """The first-stage record in ``run_dir``, or None if it has no ``splats.ply``.
 
