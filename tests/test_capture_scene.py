@@ -16,7 +16,7 @@ import torch
 
 from src.data.colmap import ColmapDataset
 from tests.alignment import camera_errors, rotation_angle_deg
-from tests.test_colmap import run_cli
+from tests.cli_runs import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 ROOM = REPO / "data" / "captures" / "room"

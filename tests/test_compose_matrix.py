@@ -19,8 +19,8 @@ from omegaconf import OmegaConf
 from src.run import DYNAMIC_MODELS, run
 from src.utils.instantiate import ConfigError
 from tests import format_writers as fw
+from tests.colmap_models import write_model as write_colmap_model
 from tests.scenes import write_blender_scene
-from tests.test_colmap import write_model as write_colmap_model
 
 REPO = Path(__file__).resolve().parents[1]
 EXPERIMENTS = sorted(p.stem for p in (REPO / "conf" / "experiment").glob("*.yaml"))

@@ -3,7 +3,7 @@
 ``mip360``: contract(x) = c(x / r) / 2 with Mip-NeRF 360's c (identity in the unit ball, (2 - 1/|y|) y/|y|
 outside), so R^3 lands in the open unit ball; ``none`` is the identity. The field applies it before the
 tri-plane lookup and every head's positional encoding; the end-to-end run is +experiment=splatfields3d_unbounded
-on a COLMAP model of data/static/plant (tests/test_colmap.py's builder).
+on a COLMAP model of data/static/plant (tests/colmap_models.py's builder).
 """
 
 from __future__ import annotations
@@ -240,7 +240,8 @@ def test_model_warns_about_centres_outside_the_planes_without_a_contraction(capl
 # -- end to end --------------------------------------------------------------------------------------------------------
 @pytest.mark.slow
 def test_smoke_run_on_a_colmap_model(tmp_path):
-    from tests.test_colmap import run_cli, write_model
+    from tests.cli_runs import run_cli
+    from tests.colmap_models import write_model
 
     model = write_model(tmp_path / "capture")
     out = tmp_path / "run"
