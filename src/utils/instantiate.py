@@ -100,25 +100,73 @@ def _resolve_target(target: str, where: str) -> Any:
     return obj
 
 
+def _named(sig: inspect.Signature) -> tuple[list[str], bool]:
+    """(names a signature takes by keyword, whether it also takes ``**kwargs``); ``self`` left out."""
+    params = [p for p in sig.parameters.values() if p.name != "self"]
+    by_name = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return ([p.name for p in params if p.kind in by_name],
+            any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params))
+
+
+def _base_keywords(cls: type) -> list[str] | None:
+    """The names a class's ``**kwargs`` reach when its ``__init__`` hands them to its base class.
+
+    Walks the MRO past ``cls`` to the ``__init__`` of each base that defines one: a base of the project's
+    package adds its named parameters, and the walk stops at the first that takes no ``**kwargs``
+    (``SugarLoss`` -> ``SplatLoss``). None where the walk reaches a base outside the package (e.g.
+    ``torch.nn.Module``) or one that takes ``**kwargs`` it never forwards: any name may then be taken.
+    """
+    names: list[str] = []
+    for base in cls.__mro__[1:]:
+        init = base.__dict__.get("__init__")
+        if init is None:
+            continue
+        if not _inside_project(base):
+            return None
+        try:
+            more, open_ended = _named(inspect.signature(init))
+        except (TypeError, ValueError):
+            return None
+        names += [n for n in more if n not in names]
+        if not open_ended:
+            return names
+    return None
+
+
 def _accepted(obj: Any) -> tuple[set[str] | None, list[str]]:
     """(parameter names ``obj`` accepts by keyword, or None if it takes any ``**kwargs``; names for messages).
 
     A callable whose ``**kwargs`` take only certain names lists them in ``extra_keywords``
-    (``SplatFieldNetwork``'s flat head keys); they are checked as parameters.
+    (``SplatFieldNetwork``'s flat head keys); they are checked as parameters. A class whose ``**kwargs`` go
+    to its base class's ``__init__`` takes that base's named parameters too (:func:`_base_keywords`).
     """
     try:
         sig = inspect.signature(obj)
     except (TypeError, ValueError):
         return None, []
-    params = [p for p in sig.parameters.values() if p.name != "self"]
-    extra: Any = ()
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+    names, open_ended = _named(sig)
+    if open_ended:
         extra = getattr(obj, "extra_keywords", None)
+        if extra is None and inspect.isclass(obj):
+            extra = _base_keywords(obj)
         if extra is None:
-            return None, [p.name for p in params]
-    by_name = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
-    names = [p.name for p in params if p.kind in by_name] + list(extra)
+            return None, names
+        names += [n for n in extra if n not in names]
     return set(names), names
+
+
+def takes(cfg: DictConfig | dict, **optional: Any) -> dict[str, Any]:
+    """Those of ``optional`` that the target of ``cfg`` takes by name (as :func:`check_targets` sees them).
+
+    For runtime objects only some components use, e.g. ``build(cfg.loss, **takes(cfg.loss, extent=...))``:
+    a loss that takes the scene's extent gets it, the others are built as before. A target that takes any
+    ``**kwargs`` gets them all.
+    """
+    target = cfg.get("_target_") if isinstance(cfg, dict | DictConfig) else None
+    if target is None:
+        return {}
+    accepted, _ = _accepted(_resolve_target(str(target), "config"))
+    return dict(optional) if accepted is None else {k: v for k, v in optional.items() if k in accepted}
 
 
 def check_targets(cfg: Any, root: str = "") -> None:
