@@ -65,6 +65,18 @@ class Splats:
         )
 
 
+def shortest_axis(rotations: Tensor, scales: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Each Gaussian's shortest axis: (its scale [...], its index [...] in 0..2, the unit axis [..., 3]).
+
+    ``rotations`` [..., 3, 3] hold the Gaussians' axes as columns (world from local), ``scales`` [..., 3] the
+    standard deviations along them; the axis is the column of the smallest scale (a flat splat's normal, up
+    to sign). Differentiable in both (the index is not).
+    """
+    smallest, index = scales.min(-1)
+    axis = rotations.gather(-1, index[..., None, None].expand(*index.shape, 3, 1))[..., 0]
+    return smallest, index, axis
+
+
 @dataclass
 class RenderOutput:
     """What a rasterizer returns for one camera.

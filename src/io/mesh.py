@@ -4,8 +4,8 @@ SuGaR (Guédon and Lepetit, CVPR 2024, Sec. 4.2) reconstructs its mesh by Poisso
 on a level set of the regularised Gaussians' density, seen from the training cameras. Here the points are
 sampled on the flat splats themselves: per splat, points of its Gaussian in the plane of its two largest axes,
 with its shortest axis as the normal, oriented towards the nearest training camera. Open3D runs the Poisson
-reconstruction; it is an optional dependency (``pip install -e ".[mesh]"``): without it the run records that
-no mesh was written and goes on.
+reconstruction; it is an optional dependency (``pip install -e ".[mesh]"``): without it, or when it cannot be
+loaded (a missing system library), the run records why no mesh was written and goes on.
 
 Conventions: activated splats (linear scales, opacities in (0, 1), (w, x, y, z) quaternions), world frame of
 the normalised scene (the frame of ``splats.ply``).
@@ -22,13 +22,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from src.core.splats import Splats
+from src.core.splats import Splats, shortest_axis
 from src.fields.flows import quat_to_rotmat_wxyz
+from src.utils.record import os_error_line
+from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
 
 MESH_PLY = "mesh.ply"
 MISSING = 'open3d is not installed (pip install -e ".[mesh]"): no mesh.ply written'
+NEAREST_CHUNK = 1 << 20  # points per nearest-camera search ([chunk, C] distances in float64)
 
 
 def oriented_splat_points(splats: Splats, cameras: Tensor, n_points: int, min_opacity: float,
@@ -46,16 +49,17 @@ def oriented_splat_points(splats: Splats, cameras: Tensor, n_points: int, min_op
         empty = torch.zeros(0, 3, dtype=torch.float64)
         return empty, empty
     rotations = quat_to_rotmat_wxyz(splats.quats[keep].double())  # [K, 3, 3]
-    shortest = scales.argmin(-1)  # [K]
-    area = scales.prod(-1) / scales.gather(1, shortest[:, None])[:, 0]  # [K] product of the two largest
+    _, shortest, axes = shortest_axis(rotations, scales)  # [K], [K, 3]
+    ordered = scales.sort(-1).values
+    area = ordered[:, 1] * ordered[:, 2]  # [K] product of the two largest scales
     g = torch.Generator().manual_seed(int(seed))
     pick = torch.multinomial(area / area.sum(), int(n_points), replacement=True, generator=g)  # [M]
     eps = torch.randn(int(n_points), 3, generator=g, dtype=torch.float64)
     eps.scatter_(1, shortest[pick][:, None], 0.0)  # in the splat's plane
     points = means[pick] + torch.einsum("mij,mj->mi", rotations[pick], scales[pick] * eps)
-    normals = rotations[pick].gather(2, shortest[pick][:, None, None].expand(-1, 3, 1))[..., 0]  # [M, 3]
+    normals = axes[pick]  # [M, 3]
     cams = cameras.double()
-    nearest = torch.cdist(points, cams).argmin(-1)  # [M]
+    nearest = torch.cat([torch.cdist(chunk, cams).argmin(-1) for chunk in points.split(NEAREST_CHUNK)])  # [M]
     sign = torch.sign(((cams[nearest] - points) * normals).sum(-1))
     return points, normals * torch.where(sign == 0, torch.ones_like(sign), sign)[:, None]
 
@@ -72,22 +76,32 @@ class PoissonMesh:
     """Poisson reconstruction of points sampled on the trained splats, written as ``<run>/mesh.ply``.
 
     Args:
-        n_points: points sampled on the splats (SuGaR's extractor: 10^7 level-set points over all views).
-        poisson_depth: octree depth of the reconstruction (SuGaR's extractor: 10 for real scenes, 6 or 7 for
-            synthetic ones).
+        n_points: points sampled on the splats (SuGaR's extractor: ``n_total_points`` 10^7 level-set points
+            over all views).
+        poisson_depth: octree depth of the reconstruction (SuGaR's extractor: 10, "6 or 7 work well for most
+            synthetic scenes").
         density_quantile: remove the vertices whose Poisson density is below this quantile (SuGaR's extractor:
-            0.1 for real scenes, 0 for synthetic ones).
-        min_opacity: sample only splats with at least this opacity (SuGaR's prune threshold: 0.5).
+            0.1 for real scenes, 0 for synthetic ones); in [0, 1).
+        min_opacity: sample only splats with at least this opacity (SuGaR's prune threshold: 0.5); in [0, 1].
         decimation_target: decimate to at most this many triangles (SuGaR's extractor: 200 000 or 1 000 000;
-            null: never).
+            null: never); >= 1.
         seed: seed of the point sampling.
+
+    Raises:
+        ConfigValueError: a value out of range, naming its ``mesh.`` key.
     """
 
-    def __init__(self, n_points: int = 200_000, poisson_depth: int = 7, density_quantile: float = 0.0,
+    def __init__(self, n_points: int = 10_000_000, poisson_depth: int = 10, density_quantile: float = 0.1,
                  min_opacity: float = 0.5, decimation_target: int | None = 200_000, seed: int = 0) -> None:
-        if n_points < 1 or poisson_depth < 1 or not 0.0 <= density_quantile < 1.0:
-            raise ValueError(f"mesh: n_points and poisson_depth must be >= 1 and density_quantile in [0, 1) (got "
-                             f"{n_points}, {poisson_depth}, {density_quantile})")
+        checks = (("n_points", n_points, n_points >= 1, "an integer >= 1"),
+                  ("poisson_depth", poisson_depth, poisson_depth >= 1, "an integer >= 1"),
+                  ("density_quantile", density_quantile, 0.0 <= density_quantile < 1.0, "a value in [0, 1)"),
+                  ("min_opacity", min_opacity, 0.0 <= min_opacity <= 1.0, "a value in [0, 1]"),
+                  ("decimation_target", decimation_target, decimation_target is None or decimation_target >= 1,
+                   "an integer >= 1 or null"))
+        for key, value, ok, expected in checks:
+            if not ok:
+                raise ConfigValueError(f"mesh.{key}={value!r}: expected {expected}")
         self.n_points, self.depth = int(n_points), int(poisson_depth)
         self.density_quantile, self.min_opacity = float(density_quantile), float(min_opacity)
         self.decimation_target = None if decimation_target is None else int(decimation_target)
@@ -111,7 +125,8 @@ class PoissonMesh:
         """Write ``<run_dir>/mesh.ply`` from baked ``splats`` and training camera centres [C, 3].
 
         Returns the run record's ``mesh`` entry: ``written``, and ``file``, ``n_vertices``, ``n_triangles``,
-        ``mesh_s`` when written, else ``reason`` (logged in one line; the run goes on).
+        ``mesh_s`` when written, else ``reason`` (logged in one line; the run goes on): open3d missing, or
+        present but not loadable (an OSError from a missing system library such as ``libusb-1.0``).
         """
         t0 = time.perf_counter()
         try:
@@ -119,6 +134,10 @@ class PoissonMesh:
         except ImportError:
             log.warning("mesh=poisson: %s", MISSING)
             return {"written": False, "reason": MISSING}
+        except OSError as e:
+            reason = f"open3d cannot be loaded ({' '.join(os_error_line(e).split())[:200]}): no mesh.ply written"
+            log.warning("mesh=poisson: %s", reason)
+            return {"written": False, "reason": reason}
         points, normals = oriented_splat_points(splats.detach().to("cpu"), cameras.detach().cpu(), self.n_points,
                                                 self.min_opacity, self.seed)
         if points.shape[0] == 0:

@@ -71,7 +71,8 @@ def validate_run_config(cfg: DictConfig) -> None:
     (``init.n_points``, ``strategy.max_splats``, ``schedule.*``) > 0; ``dataset.n_views`` >= 1;
     ``dataset.downscale`` > 0; ``trainer.views_per_step`` >= 1; ``trainer.compile`` a known backend;
     ``init.select`` one of :data:`QUERY_SELECT`; ``trainer.random_background`` a boolean; ``seed`` an
-    integer >= 0; ``threads`` null or a positive integer.
+    integer >= 0; ``threads`` null or a positive integer; the ``mesh`` node's own checks (it is built only
+    after training, so it is built once here too: ``PoissonMesh`` holds nothing but its settings).
     """
     compile_backend(OmegaConf.select(cfg, "trainer.compile", default=None))
     select = OmegaConf.select(cfg, "init.select", default="random")
@@ -101,3 +102,7 @@ def validate_run_config(cfg: DictConfig) -> None:
     _require(cfg, "threads", integer=True)  # null: torch's default; 0 or less has no meaning
     for key in ("dataset.downscale", "dataset.image_scale"):
         _require(cfg, key)
+    if OmegaConf.select(cfg, "mesh._target_", default=None) is not None:
+        from src.utils.instantiate import build  # imported here: the other checks need no hydra
+
+        build(cfg.mesh)
