@@ -6,14 +6,20 @@
 * the ideal SDF s* sqrt(-2 log d) against hand computations (one opaque flat Gaussian: the distance to its
   plane; a partly transparent one; d >= 1 gives 0), the density gradient against autograd, the samples'
   moments, the near-surface selection and the normal term of a flat Gaussian;
+* the SDF term in units of a tenth of the scene's camera extent, each sample's error clamped at 10 x extent;
 * the loss windows, the prune (exactly the splats below the threshold, once, at its iteration), and a run
-  resumed within the surface terms' window that draws the same samples as the uninterrupted one;
-* the mesh: points in the splats' planes with normals facing the cameras; without open3d the writer records
-  why no mesh was written; with it, a sphere of flat splats gives a mesh on the sphere.
+  resumed within the surface terms' window that draws the same samples (from the run's generator) as the
+  uninterrupted one;
+* the mesh: points in the splats' planes with normals facing the cameras; without open3d, or with an open3d
+  that cannot load, the writer records why no mesh was written; with it, a sphere of flat splats gives a
+  mesh on the sphere;
+* out-of-range values are one-line ConfigValueErrors naming the key; through the command line a bad value
+  and a mistyped key of ``+experiment=sugar`` are one ``error:`` line with exit code 2.
 """
 
 from __future__ import annotations
 
+import importlib.abc
 import importlib.util
 import math
 import sys
@@ -44,6 +50,9 @@ from src.optim.adam import SplatOptimizer
 from src.rasterizer.torch_ref import TorchRefRasterizer
 from src.strategy.sugar import SugarStrategy, prune_below
 from src.trainer.trainer import Trainer
+from src.utils.instantiate import ConfigError, check_targets, takes
+from src.utils.validate import ConfigValueError
+from tests.cli_runs import one_error_line, run_cli
 from tests.conftest import random_camera
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -200,8 +209,8 @@ def test_normal_term_of_a_flat_gaussian_is_small_and_gradients_are_finite():
     for name in ("means", "scales", "quats", "opacities"):
         getattr(splats, name).requires_grad_(True)
     render = TorchRefRasterizer().render(splats, cam, torch.zeros(3, dtype=F64))
-    torch.manual_seed(0)
-    sdf, normal = surface_terms(render, cam, splats, n_samples=256, k=4)
+    sdf, normal = surface_terms(render, cam, splats, n_samples=256, k=4, extent=3.3,  # cameras 3 from the centre
+                                generator=torch.Generator().manual_seed(0))
     assert float(normal.detach()) < 1e-2  # g is +-n up to O(s_min / s_max) (heavy-tailed near the plane)
     assert 0 < float(sdf.detach()) < 1.0
     (sdf + normal).backward()
@@ -233,6 +242,56 @@ def test_loss_terms_act_in_their_windows():
     assert names[4] == names[5] == {"flat", "sdf", "normal"}
     terms = loss([render], [view], [splats], iteration=2)
     torch.testing.assert_close(terms["entropy"], opacity_entropy(splats.opacities))
+
+
+def _surface(extent: float, sigmas: float = 2.0):
+    """surface_terms of one tilted flat splat (the same 256 samples for every ``extent``)."""
+    cam = _camera(32, 32, f=40.0)
+    splats = _flat_splat(scales=(0.6, 0.5, 0.05), quat=(0.95, 0.1, 0.2, 0.0), opacity=0.9)
+    render = TorchRefRasterizer().render(splats, cam, torch.zeros(3, dtype=F64))
+    return surface_terms(render, cam, splats, n_samples=256, k=1, sigmas=sigmas, extent=extent,
+                         generator=torch.Generator().manual_seed(0))
+
+
+def test_the_sdf_term_is_in_tenths_of_the_scene_extent_and_clamped_per_sample():
+    sdf1, normal1 = _surface(extent=1.0)
+    sdf2, normal2 = _surface(extent=2.0)
+    assert 0 < float(sdf1) < 10.0  # no sample reaches the clamp at extent 1
+    torch.testing.assert_close(sdf2, sdf1 / 2, rtol=1e-12, atol=0)  # not the view's distance: the scene's extent
+    torch.testing.assert_close(normal2, normal1, rtol=0, atol=0)
+    tiny = 1e-4  # errors of ~1e-2 in units of 1e-5 reach the clamp at 10 x 1e-4 = 1e-3
+    sdf_tiny, _ = _surface(extent=tiny)
+    assert math.isclose(float(sdf_tiny), 10 * tiny, rel_tol=0.05) and float(sdf_tiny) <= 10 * tiny + 1e-15
+
+
+def test_bad_values_are_one_line_config_errors_naming_the_key():
+    cases = [(lambda: SugarLoss(sdf_weight=-1), "loss.sdf_weight=-1: expected >= 0"),
+             (lambda: SugarLoss(n_samples=0), "loss.n_samples=0: expected an integer >= 1"),
+             (lambda: SugarLoss(near_surface_sigmas=0.0), "loss.near_surface_sigmas=0.0: expected a number > 0"),
+             (lambda: SugarLoss(entropy_from=10, sdf_from=5), "loss.entropy_from=10: expected at most loss.sdf_from=5"),
+             (lambda: SugarStrategy(prune_opacity_hard=1.5), "strategy.prune_opacity_hard=1.5: expected a value in"),
+             (lambda: PoissonMesh(min_opacity=-0.1), "mesh.min_opacity=-0.1: expected a value in [0, 1]"),
+             (lambda: PoissonMesh(decimation_target=0), "mesh.decimation_target=0: expected an integer >= 1 or null"),
+             (lambda: PoissonMesh(poisson_depth=0), "mesh.poisson_depth=0: expected an integer >= 1")]
+    for make, needle in cases:
+        with pytest.raises(ConfigValueError) as err:
+            make()
+        assert needle in str(err.value) and "\n" not in str(err.value), str(err.value)
+
+
+def test_keys_of_the_base_loss_are_checked_and_run_time_objects_go_where_they_are_taken():
+    """``**kwargs`` that go to SplatLoss take its parameters, not any name: a mistyped key is refused."""
+    check_targets({"_target_": "src.losses.sugar.SugarLoss", "sdf_weight": 0.3, "lambda_mask": 0.0})
+    check_targets({"_target_": "src.losses.surfel.SurfelLoss", "lambda_normal": 0.1, "lambda_dssim": 0.2})
+    for target, key in (("src.losses.sugar.SugarLoss", "sdf_weigth"), ("src.losses.surfel.SurfelLoss", "lambda_mask_")):
+        with pytest.raises(ConfigError, match=f"does not take '{key}'"):
+            check_targets({"_target_": target, key: 0.3})
+    with pytest.raises(ConfigError, match="does not take 'prune_att'"):
+        check_targets({"_target_": "src.strategy.SugarStrategy", "prune_att": 3})
+    g = torch.Generator()
+    assert takes({"_target_": "src.losses.sugar.SugarLoss"}, extent=2.0, generator=g) == {"extent": 2.0, "generator": g}
+    assert takes({"_target_": "src.losses.SplatLoss"}, extent=2.0, generator=g) == {}
+    assert takes({"_target_": "src.losses.surfel.SurfelLoss"}, extent=2.0) == {}
 
 
 # -- the prune ---------------------------------------------------------------------------------------------------
@@ -279,28 +338,32 @@ class _Recorded(SugarLoss):
 
 
 def _fit(run_dir, iterations: int) -> GaussianSplatModel:
-    """SuGaR on three random views: entropy from iteration 1, the prune after 3, the surface terms from 3."""
+    """SuGaR on three random views: entropy from iteration 1, the prune after 3, the surface terms from 3.
+
+    One generator is the run's: the loss draws its samples from it and the trainer checkpoints it.
+    """
     pts = (torch.rand(150, 3, generator=torch.Generator().manual_seed(3)) - 0.5) * 0.6
     model = GaussianSplatModel(pts, sh_degree=0)
     model.params["opacities"].data = torch.randn(150, generator=torch.Generator().manual_seed(4)) * 2  # logits
     views = [View(camera=random_camera(16, 16, seed=20 + i), image=torch.rand(16, 16, 3, generator=torch.Generator(
         ).manual_seed(i)), mask=None, image_id=i) for i in range(3)]
     scene = Scene(name="tiny", train=views, val=[], test=views[:1], background=torch.ones(3), view_ids=[0, 1, 2])
+    generator = torch.Generator().manual_seed(0)
     loss = _Recorded(lambda_mask=0.0, entropy_from=1, sdf_from=3, flat_from=1, flat_weight=0.01, n_samples=64,
-                     k_neighbours=4)
+                     k_neighbours=4, extent=scene.extent, generator=generator)
     loss.seen = []
     strategy = SugarStrategy(prune_at=3, prune_opacity_hard=0.5, stop_iter=0, reset_every=0)
     trainer = Trainer(iterations=iterations, log_every=1000, progress=False, tensorboard=False, ckpt_every=0,
                       guard={"warmup": 10**6, "collapse_psnr": 0.0})
     lr = {k: {"init": 1e-2} for k in model.params}
     trainer.fit(model, scene, TorchRefRasterizer(), loss, lambda m: SplatOptimizer(m.param_groups(), lr), strategy,
-                run_dir=run_dir, generator=torch.Generator().manual_seed(0))
+                run_dir=run_dir, generator=generator)
     assert all({"sdf", "normal"} <= names for names in loss.seen[-2:])  # the surface terms drew samples
     return model
 
 
 def test_a_resumed_run_draws_the_same_samples(tmp_path):
-    """The surface terms draw from torch's global generator, which checkpoints hold: resuming reproduces."""
+    """The surface terms draw from the run's generator, which checkpoints hold: resuming reproduces."""
     torch.manual_seed(123)
     full = _fit(tmp_path / "full", iterations=7)
     assert 0 < full.n_splats < 150  # the prune acted
@@ -310,6 +373,23 @@ def test_a_resumed_run_draws_the_same_samples(tmp_path):
     resumed = _fit(tmp_path / "cut", iterations=7)
     for name, p in full.params.items():
         assert torch.equal(p, resumed.params[name]), name
+
+
+def test_samples_come_from_the_given_generator_not_the_global_one():
+    cam = _camera(32, 32, f=40.0)
+    splats = _flat_splat(scales=(0.6, 0.5, 0.01), opacity=0.9)
+    render = TorchRefRasterizer().render(splats, cam, torch.zeros(3, dtype=F64))
+    view = View(camera=cam, image=torch.zeros(32, 32, 3, dtype=F64), mask=None, image_id=0)
+    values = []
+    for global_seed in (1, 2):
+        torch.manual_seed(global_seed)
+        loss = SugarLoss(entropy_from=0, sdf_from=0, n_samples=64, k_neighbours=1,
+                         generator=torch.Generator().manual_seed(5))
+        values.append(loss([render], [view], [splats], iteration=0)["sdf"])
+    assert torch.equal(values[0], values[1])
+    other = SugarLoss(entropy_from=0, sdf_from=0, n_samples=64, k_neighbours=1,
+                      generator=torch.Generator().manual_seed(6))
+    assert not torch.equal(other([render], [view], [splats], iteration=0)["sdf"], values[0])
 
 
 # -- the mesh ----------------------------------------------------------------------------------------------------
@@ -347,6 +427,39 @@ def test_without_open3d_the_run_records_that_no_mesh_was_written(tmp_path, monke
     assert not (tmp_path / MESH_PLY).exists()
 
 
+class _Unloadable(importlib.abc.MetaPathFinder):
+    """Finds ``open3d`` as a present package whose shared library cannot load (an OSError from ctypes)."""
+
+    def find_spec(self, name, path, target=None):
+        if name == "open3d":
+            raise OSError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")
+        return None
+
+
+def test_an_open3d_that_cannot_load_is_recorded_and_the_run_goes_on(tmp_path, monkeypatch):
+    monkeypatch.delitem(sys.modules, "open3d", raising=False)
+    monkeypatch.setattr(sys, "meta_path", [_Unloadable(), *sys.meta_path])
+    out = PoissonMesh(n_points=1000).write(_sphere_of_flat_splats(), torch.eye(3, dtype=F64) * 3, tmp_path)
+    assert out["written"] is False and "\n" not in out["reason"]
+    assert out["reason"].startswith("open3d cannot be loaded (libusb-1.0.so.0: cannot open shared object file")
+    assert not (tmp_path / MESH_PLY).exists()
+
+
+def test_mesh_samples_favour_the_splats_with_the_largest_area():
+    """Splats are drawn in proportion to the product of their two largest scales, whatever the axis order and
+    for a perfectly flat splat too (smallest scale 0)."""
+    splats = Splats(means=torch.tensor([[0.0, 0, 0], [5.0, 0, 0]], dtype=F64),
+                    scales=torch.tensor([[0.0, 0.3, 0.3], [0.1, 0.01, 0.1]], dtype=F64),  # areas 0.09 and 0.01
+                    quats=torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=F64), opacities=torch.full((2,), 0.9, dtype=F64),
+                    colors=torch.zeros(2, 3, dtype=F64))
+    pts, normals = oriented_splat_points(splats, torch.tensor([[2.5, 0.0, 3.0]], dtype=F64), 20_000, 0.5)
+    first = pts[:, 0] < 2.5
+    assert abs(float(first.double().mean()) - 0.9) < 0.01
+    assert float(pts[first, 0].abs().max()) < 1e-12 and float(pts[~first, 1].abs().max()) < 1e-12  # in-plane
+    assert torch.equal(normals[first], torch.tensor([1.0, 0, 0], dtype=F64).expand(int(first.sum()), 3))
+    assert torch.equal(normals[~first], torch.tensor([0, 1.0, 0], dtype=F64).expand(int((~first).sum()), 3))
+
+
 @pytest.mark.skipif(not HAS_OPEN3D, reason="open3d not installed (pip install -e '.[mesh]')")
 def test_poisson_mesh_of_a_sphere_of_flat_splats_lies_on_the_sphere(tmp_path):
     import open3d as o3d
@@ -365,3 +478,14 @@ def test_render_output_depth_semantics_used_by_the_loss():
     r = RenderOutput(color=torch.zeros(1, 2, 3), alpha=torch.tensor([[1.0, 0.25]]), depth=torch.tensor([[2.0, 0.5]]),
                      means2d=torch.zeros(0, 2), radii=torch.zeros(0))
     torch.testing.assert_close(depth_map(r, 4.0), torch.tensor([[2.0, 0.5 + 0.75 * 4.0]]))
+
+
+# -- through the command line ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("override, needle", [
+    ("loss.sdf_weight=-1", "loss.sdf_weight=-1: expected >= 0"),
+    ("+loss.sdf_weigth=0.3", "loss: src.losses.sugar.SugarLoss does not take 'sdf_weigth'"),
+    ("mesh.min_opacity=2", "mesh.min_opacity=2: expected a value in [0, 1]"),
+])
+def test_cli_bad_sugar_settings_are_one_error_line(tmp_path, override, needle):
+    proc = run_cli("+experiment=sugar", override, f"hydra.run.dir={tmp_path / 'run'}", "threads=1", "+ci=smoke")
+    assert needle in one_error_line(proc)

@@ -11,6 +11,7 @@ import torch
 from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 from src.strategy.default import ADCStrategy
+from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
 
@@ -40,20 +41,29 @@ class SugarStrategy(ADCStrategy):
     Args:
         prune_at: after this many iterations (0-based iteration ``prune_at - 1``), remove the splats whose
             opacity is below ``prune_opacity_hard`` (SuGaR's code: once, after 9 000 of 15 000 iterations).
-        prune_opacity_hard: the threshold of that prune (SuGaR: 0.5).
+        prune_opacity_hard: the threshold of that prune (SuGaR: 0.5), in [0, 1].
         **kwargs: the arguments of :class:`ADCStrategy` (``stop_iter``: the end of the warm-up, SuGaR's 3DGS
             densifies until iteration 7 000).
+
+    Raises:
+        ConfigValueError: ``prune_opacity_hard`` outside [0, 1], naming its ``strategy.`` key.
     """
 
     def __init__(self, prune_at: int = 9000, prune_opacity_hard: float = 0.5, **kwargs) -> None:
         super().__init__(**kwargs)
         if not 0.0 <= prune_opacity_hard <= 1.0:
-            raise ValueError(f"strategy.prune_opacity_hard={prune_opacity_hard}: expected a value in [0, 1]")
+            raise ConfigValueError(f"strategy.prune_opacity_hard={prune_opacity_hard!r}: expected a value in [0, 1]")
         self.prune_at = int(prune_at)
         self.prune_opacity_hard = float(prune_opacity_hard)
 
     def after_step(self, model: SplatModel, optimizer: SplatOptimizer, iteration: int,
                    generator: torch.Generator) -> dict:
+        """:meth:`ADCStrategy.after_step` (densification until ``stop_iter``), then, after 0-based iteration
+        ``prune_at - 1``, the one opacity prune of :func:`prune_below`.
+
+        Returns the density-control statistics, with ``sugar_prune`` (splats removed) and ``n_splats`` (splats
+        left) added at the prune's iteration.
+        """
         stats = super().after_step(model, optimizer, iteration, generator)
         if iteration + 1 == self.prune_at:
             stats["sugar_prune"] = prune_below(model, optimizer, self.prune_opacity_hard)

@@ -9,7 +9,7 @@ from omegaconf import DictConfig
 
 from src.sparse import optimizer_for
 from src.trainer.identity import run_identity
-from src.utils.instantiate import build
+from src.utils.instantiate import build, takes
 
 
 def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, generator: torch.Generator):
@@ -26,7 +26,7 @@ def fit_scene(cfg: DictConfig, scene, run_dir: Path, device: torch.device, gener
         return build(cfg.model, init=init_points.to(device), n_frames=scene.n_frames).to(device)
 
     model = build_model()
-    loss_fn = build(cfg.loss)
+    loss_fn = build(cfg.loss, **takes(cfg.loss, extent=scene.extent, generator=generator))  # those it takes
     strategy = build(cfg.strategy, extent=scene.extent)
     sparse = build(cfg.sparse) if cfg.get("sparse") else None  # training-free sparse-view ingredients (src/sparse)
     if sparse is not None and sparse.empty:
