@@ -3,7 +3,7 @@
 ``captures/room`` is a closed, textured room (brick back wall, plaster side walls hung with photo posters,
 a tiled floor, a ceiling, a rug), a table with photo-textured boxes, a ball, a mug and a book on it, and a
 crate, a barrel and a stool on the floor. Thirty photos are taken from an inward-looking arc of 120°
-around the table at standing height, with the small height, aim and roll wobble of a hand-held camera
+around the table at standing height, with the small height, distance, aim and roll wobble of a hand-held camera
 (fixed seed), so that every photo sees overlapping textured content.
 
 Written into ``OUT/captures/room/``:
@@ -17,8 +17,8 @@ Written into ``OUT/captures/room/``:
   y down, z forward), world = Blender's (Z up, metres)}].
 
 Cycles on the CPU, 8 samples per pixel, OpenImageDenoise (albedo and normal passes), seed 0, two threads:
-about 8 s of CPU per photo (14 s of wall time each on 2 cores shared with two training runs); the photos are
-byte-identical from run to run.
+about 8 s of CPU per photo (14 s of wall time each on 2 CPU cores); the photos are byte-identical from run
+to run.
 """
 
 from __future__ import annotations
@@ -96,7 +96,8 @@ def slab(lo, hi, mat, name: str):
 
 
 def build_room(scene) -> None:
-    """Walls, floor, ceiling, posters, furniture and objects, lit by two ceiling panels and a window light."""
+    """Walls, floor, ceiling, posters, furniture and objects, lit by two ceiling area lights and a warm point
+    lamp in a corner (no world light: the room is closed)."""
     (x0, x1), (y0, y1), (z0, z1) = ROOM
     t = 0.1  # wall thickness
     scene.world = bpy.data.worlds.new("World")
@@ -182,8 +183,9 @@ def build_room(scene) -> None:
 # ---------------------------------------------------------------- the camera path
 def capture_poses(n: int = N_PHOTOS, seed: int = SEED) -> list[np.ndarray]:
     """``n`` Blender camera-to-world matrices on an inward-looking arc (azimuth −60°…60° around the table, from
-    the front of the room), 2.3 m from the aim point at eye height, with a hand-held wobble: height ±8 cm,
-    radius ±10 cm, aim ±10 cm and roll ±2° (uniform, fixed seed)."""
+    the front of the room), 2.3 m from the aim point at eye height, with a hand-held wobble (fixed seed): height
+    1.55 m + 8 cm · sin(3 · azimuth) + U(±4 cm), radius 2.3 m + U(±10 cm), aim U(±10 cm) per axis and roll
+    U(±2°)."""
     rng = np.random.default_rng(seed)
     poses = []
     for k in range(n):
