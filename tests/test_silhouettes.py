@@ -81,11 +81,12 @@ def _reader(fmt: str, root: Path):
 
 
 def shipped() -> list[str]:
-    """Relative paths of every scene folder under data/ (two levels, three under formats/)."""
+    """Relative paths of every scene folder under data/ (two levels, three under formats/), but the captures:
+    photos without masks or a ground-truth mesh, whose cameras tests/test_capture_scene.py checks instead."""
     if not DATA.is_dir():
         return []
     out = []
-    for kind in sorted(p for p in DATA.iterdir() if p.is_dir()):
+    for kind in sorted(p for p in DATA.iterdir() if p.is_dir() and p.name != "captures"):
         layouts = sorted(p for p in kind.iterdir() if p.is_dir()) if kind.name == "formats" else [kind]
         for layout in layouts:
             out += [str(s.relative_to(DATA)) for s in sorted(layout.iterdir()) if s.is_dir()]
