@@ -116,18 +116,22 @@ def settings_digest(cfg: DictConfig) -> str:
     return hashlib.sha1(json.dumps(nodes, sort_keys=True, default=str).encode()).hexdigest()[:12]
 
 
+def ingredient_slots(sparse: DictConfig | None) -> list[str]:
+    """The ingredient slots a ``sparse`` node (conf/sparse/) sets (``none`` sets only its target: [])."""
+    return [] if sparse is None else [str(k) for k, v in sparse.items() if k != "_target_" and v is not None]
+
+
 def has_ingredient(sparse: DictConfig | None) -> bool:
-    """Whether a ``sparse`` node (conf/sparse/) sets any ingredient slot (``none`` sets only its target)."""
-    return sparse is not None and any(k != "_target_" and v is not None for k, v in sparse.items())
+    """Whether a ``sparse`` node sets any ingredient slot."""
+    return bool(ingredient_slots(sparse))
 
 
 def ingredient_tag(sparse: DictConfig | None) -> str:
-    """``""``, or ``_`` and the set ingredient slots of a ``sparse`` node joined by ``+`` (``_dropout``): the
-    suffix of a first stage's cache directory (``paths.stage1_dir``), so that first stages with and without
-    an ingredient never share one."""
-    if not has_ingredient(sparse):
-        return ""
-    return "_" + "+".join(str(k) for k, v in sparse.items() if k != "_target_" and v is not None)
+    """``""``, or ``_`` and the set ingredient slots joined by ``+`` (``_dropout``): the suffix of a first
+    stage's cache directory (``paths.stage1_dir``), so that first stages with and without an ingredient never
+    share one."""
+    slots = ingredient_slots(sparse)
+    return "_" + "+".join(slots) if slots else ""
 
 
 def check_first_stage(run_dir: Path, expected: dict) -> dict | None:
