@@ -508,3 +508,11 @@ JOBS = {
     "dynamic_mv/flag": lambda out, limit: render_multiview("flag", build_flag, out, limit, n_points=16000),
     "dynamic_mono/bouncing": lambda out, limit: render_mono("bouncing", build_bouncing, out, limit, n_points=16000),
 }
+
+# A multi-view sequence no setting was chosen on (rendered only when named: --only dynamic_mv/mocap_trial3):
+# another CMU capture of subject 1 (trial 3), a later window, the second palette, the same cameras.
+HELDOUT_JOBS = {
+    "dynamic_mv/mocap_trial3": lambda out, limit: render_multiview(
+        "mocap_trial3", build_mocap_figure, out, limit, n_points=12000, bvh_file="01_03.bvh", start=1800, palette=1
+    ),
+}

@@ -14,7 +14,7 @@
 The DTU-like NeuS layout needs new views and is rendered by render_all.py
 (job ``formats/dtu_neus/trinkets``).
 
-    python tools/datagen/formats.py [--data data]
+    python tools/datagen/formats.py [--data data] [--owlii SCENE ...]
 """
 
 from __future__ import annotations
@@ -129,7 +129,14 @@ def export_nerfies(data: Path, scene: str) -> int:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "data")
+    ap.add_argument("--owlii", nargs="*", default=None,
+                    help="multi-view scenes under DATA/dynamic_mv to export in the OwlII layout, and nothing else "
+                         f"(default: the shipped {OWLII_SCENES} and the Nerfies {NERFIES_SCENES})")
     args = ap.parse_args(argv)
+    if args.owlii is not None:
+        for s in args.owlii:
+            print(f"[datagen] formats/owlii_neus/{s}: {export_owlii(args.data, s)} images")
+        return
     for s in OWLII_SCENES:
         print(f"[datagen] formats/owlii_neus/{s}: {export_owlii(args.data, s)} images")
     for s in NERFIES_SCENES:

@@ -38,6 +38,7 @@ HELDOUT_JOBS = {
                                       group="heldout")
     for n in heldout_scenes.HELDOUT_SCENES
 }
+HELDOUT_JOBS.update(dynamic_scenes.HELDOUT_JOBS)
 # Photo captures: rendered only when named (--only captures/room); their COLMAP model is built afterwards, in the
 # project's environment, by `python -m src.data.sfm data/captures/room/images data/captures/room`.
 CAPTURE_JOBS = dict(capture_scenes.JOBS)
