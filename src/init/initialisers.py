@@ -11,7 +11,7 @@ from torch import Tensor
 
 from src.data.base import DatasetError, Scene
 from src.data.hull import sample_hull
-from src.utils.validate import QUERY_SELECT
+from src.utils.validate import QUERY_SELECT, ConfigValueError
 
 log = logging.getLogger(__name__)
 
@@ -39,12 +39,16 @@ class HullInit(Initialiser):
             points when the reader has them (``dataset=colmap``, as ``init=sfm``), else the box; ``"box"`` =
             sample the cube as ``init=box`` does (Nerfies / NeRF-DS layouts); ``"error"`` = refuse. A warning
             names the replacement.
+
+    Raises:
+        ConfigValueError: ``without_masks`` not one of the three, naming ``init.without_masks``.
+        DatasetError: (when called) training views without masks and ``without_masks="error"``.
     """
 
     def __init__(self, n_points: int = 100_000, threshold: float = 0.0, box: float = 1.0,
                  first_frame_only: bool = True, without_masks: str = "sfm") -> None:
         if without_masks not in ("sfm", "box", "error"):
-            raise ValueError(f"init.without_masks must be 'sfm', 'box' or 'error', got {without_masks!r}")
+            raise ConfigValueError(f"init.without_masks={without_masks!r}: expected 'sfm', 'box' or 'error'")
         self.n_points = n_points
         self.threshold = threshold
         self.box = box
@@ -56,7 +60,8 @@ class HullInit(Initialiser):
         if any(v.mask is None for v in views):
             msg = f"init=hull needs masks, but scene {scene.name} has training views without one"
             if self.without_masks == "error":
-                raise ValueError(f"{msg}: use init=box (e.g. for Nerfies/NeRF-DS data without masks)")
+                raise DatasetError(f"{msg} (init.without_masks=error): use init=box, init=sfm or "
+                                   "init.without_masks=sfm (e.g. for Nerfies/NeRF-DS data or photos without masks)")
             points = scene.meta.get("points")
             if self.without_masks == "sfm" and points is not None and points.shape[0] > 0:
                 log.warning("%s: starting from its %d structure-from-motion points instead, as init=sfm does",
