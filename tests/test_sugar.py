@@ -23,6 +23,7 @@ import importlib.abc
 import importlib.util
 import math
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -425,6 +426,22 @@ def test_without_open3d_the_run_records_that_no_mesh_was_written(tmp_path, monke
     out = PoissonMesh(n_points=1000).write(_sphere_of_flat_splats(), torch.eye(3, dtype=F64) * 3, tmp_path)
     assert out["written"] is False and "open3d is not installed" in out["reason"] and "\n" not in out["reason"]
     assert not (tmp_path / MESH_PLY).exists()
+
+
+def test_a_failed_mesh_write_leaves_no_file_behind(tmp_path):
+    """open3d writing part of the file and then reporting failure: neither mesh.ply nor the temporary file stays."""
+    from types import SimpleNamespace
+
+    from src.io.mesh import _write_atomic
+
+    def half_write(name, mesh):
+        Path(name).write_text("ply\nformat ascii 1.0\n")  # a truncated header
+        return False
+
+    fake = SimpleNamespace(io=SimpleNamespace(write_triangle_mesh=half_write))
+    with pytest.raises(RuntimeError, match=f"could not write {tmp_path / MESH_PLY}"):
+        _write_atomic(fake, None, tmp_path / MESH_PLY)
+    assert list(tmp_path.iterdir()) == []
 
 
 class _Unloadable(importlib.abc.MetaPathFinder):

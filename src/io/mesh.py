@@ -65,11 +65,16 @@ def oriented_splat_points(splats: Splats, cameras: Tensor, n_points: int, min_op
 
 
 def _write_atomic(o3d, mesh, path: Path) -> None:
-    """Write ``mesh`` to ``path`` through a temporary file in the same folder (readers never see half a mesh)."""
+    """Write ``mesh`` to ``path`` through a temporary file in the same folder (readers never see half a mesh;
+    a failed write leaves neither ``path`` nor the temporary file)."""
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    if not o3d.io.write_triangle_mesh(str(tmp), mesh):
-        raise RuntimeError(f"open3d could not write {tmp}")
-    os.replace(tmp, path)
+    try:
+        if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+            raise RuntimeError(f"open3d could not write {path} (through {tmp.name})")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 class PoissonMesh:
