@@ -17,6 +17,7 @@ import logging
 import os
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -26,6 +27,9 @@ from src.core.splats import Splats, shortest_axis
 from src.fields.flows import quat_to_rotmat_wxyz
 from src.utils.record import os_error_line
 from src.utils.validate import ConfigValueError
+
+if TYPE_CHECKING:  # annotations only: open3d is optional (pip install -e ".[mesh]")
+    import open3d
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +116,7 @@ class PoissonMesh:
         self.decimation_target = None if decimation_target is None else int(decimation_target)
         self.seed = int(seed)
 
-    def reconstruct(self, points: Tensor, normals: Tensor):
+    def reconstruct(self, points: Tensor, normals: Tensor) -> open3d.geometry.TriangleMesh:
         """An open3d ``TriangleMesh`` of oriented points [M, 3] (raises ImportError without open3d)."""
         import open3d as o3d
 

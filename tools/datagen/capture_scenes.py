@@ -26,6 +26,7 @@ from __future__ import annotations
 import io
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import bpy
@@ -49,8 +50,9 @@ TARGET = np.array([0.0, 0.7, 0.9])                 # what the photographer aims 
 
 
 # ---------------------------------------------------------------- materials
-def world_texture(name: str, filename: str, tile: float, roughness: float = 0.6, tint=None, bump: float = 0.0,
-                  turn: float = 0.0):
+def world_texture(name: str, filename: str, tile: float, roughness: float = 0.6,
+                  tint: tuple[float, float, float] | None = None, bump: float = 0.0,
+                  turn: float = 0.0) -> bpy.types.Material:
     """A scikit-image photo tiled over world space (box projection of the world position, ``tile`` metres per
     repeat), so that large, scaled surfaces keep the photo's texel size; ``turn`` rotates the world position about
     the Y axis first (radians: 90° turns the photo on walls facing ±Y)."""
@@ -70,7 +72,8 @@ def world_texture(name: str, filename: str, tile: float, roughness: float = 0.6,
     return mat
 
 
-def poster(filename: str, center, normal: str, height: float, name: str):
+def poster(filename: str, center: tuple[float, float, float], normal: str, height: float,
+           name: str) -> bpy.types.Object:
     """A flat photo print (the whole image, its aspect kept) of ``height`` metres hung at ``center``, facing
     ``normal`` ('+x', '-x' or '-y')."""
     with Image.open(C.skimage_data_dir() / filename) as im:
@@ -87,7 +90,7 @@ def poster(filename: str, center, normal: str, height: float, name: str):
 
 
 # ---------------------------------------------------------------- the room
-def slab(lo, hi, mat, name: str):
+def slab(lo: Sequence[float], hi: Sequence[float], mat: bpy.types.Material, name: str) -> bpy.types.Object:
     """An axis-aligned box from corner ``lo`` to corner ``hi``."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     box = G.cube(size=1.0, location=tuple((lo + hi) / 2), scale=tuple(hi - lo))
@@ -95,7 +98,7 @@ def slab(lo, hi, mat, name: str):
     return M.assign(box, mat)
 
 
-def build_room(scene) -> None:
+def build_room(scene: bpy.types.Scene) -> None:
     """Walls, floor, ceiling, posters, furniture and objects, lit by two ceiling area lights and a warm point
     lamp in a corner (no world light: the room is closed)."""
     (x0, x1), (y0, y1), (z0, z1) = ROOM
@@ -213,7 +216,7 @@ def save_jpeg(src: Path, dst: Path) -> None:
     dst.write_bytes(buf.getvalue())
 
 
-def setup_render(scene) -> None:
+def setup_render(scene: bpy.types.Scene) -> None:
     """Cycles settings of the captures: a full frame (no transparency), few samples and a denoiser."""
     r = scene.render
     r.resolution_x, r.resolution_y = WIDTH, HEIGHT
