@@ -252,7 +252,8 @@ class SugarLoss(SplatLoss):
         normal_weight: weight of the normal term (SuGaR's code: ``normal_factor`` 0.2).
         flat_weight: weight of :func:`flatness` of the drawn splats, from ``flat_from`` on (not in the paper:
             0 here; ``+experiment=sugar`` sets 0.01).
-        flat_from: first iteration of the flatness push.
+        flat_from: first iteration of the flatness push (the end of the warm-up, as ``entropy_from``:
+            ``loss/sugar.yaml``).
         n_samples: points sampled per view (SuGaR's code: ``n_samples_for_sdf_regularization`` 1 000 000,
             one view per iteration).
         sample_scale: samples are drawn at this many times each splat's scales (SuGaR's code: 1.5).
@@ -272,7 +273,7 @@ class SugarLoss(SplatLoss):
 
     def __init__(self, entropy_weight: float = 0.1, entropy_from: int = 7000, sdf_from: int = 9000,
                  sdf_weight: float = 0.2, normal_weight: float = 0.2, flat_weight: float = 0.0,
-                 flat_from: int = 9000, n_samples: int = 1_000_000, sample_scale: float = 1.5,
+                 flat_from: int = 7000, n_samples: int = 1_000_000, sample_scale: float = 1.5,
                  k_neighbours: int = 16, near_surface_sigmas: float = 2.0, normal_through_normal_only: bool = True,
                  extent_fraction: float = 0.1, extent: float = 1.0, generator: torch.Generator | None = None,
                  **kwargs) -> None:
