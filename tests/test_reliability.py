@@ -28,6 +28,7 @@ from src.utils.instantiate import ConfigError, build
 from src.utils.runlock import RunDirLocked, RunLock
 from src.utils.validate import ConfigValueError
 from tests import format_writers as fw
+from tests.cli_runs import run_cli
 from tests.scenes import write_blender_scene
 
 REPO = Path(__file__).resolve().parents[1]
@@ -67,11 +68,6 @@ def assert_clean(run_dir: Path) -> None:
     metrics = run_dir / "metrics.json"
     if metrics.exists():
         assert json.loads(metrics.read_text())["status"] == "failed"
-
-
-def run_cli(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "src.run", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
 
 
 # -- camera / image files -----------------------------------------------------------------------------------
@@ -313,7 +309,6 @@ def test_lock_is_released_by_a_killed_holder(tmp_path):
         holder.kill()
         holder.wait()
     RunLock(tmp_path).acquire().release()
-
 
 
 def test_extension_build_lock_left_by_a_killed_builder_is_cleared(tmp_path, monkeypatch):

@@ -3,20 +3,14 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from src.utils.record import REQUIRED_METRICS
+from tests.cli_runs import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def run_cli(*args: str, timeout: int = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "src.run", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
 
 
 def test_gs3d_smoke_writes_complete_record(tmp_path):

@@ -19,14 +19,10 @@ import torch
 from src.run import unwritable
 from src.trainer.identity import mismatch, shape_mismatch
 from src.utils.hydra_cli import one_line
+from tests.cli_runs import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 SMOKE = ("threads=1", "trainer.progress=false", "trainer.tensorboard=false", "+ci=smoke")
-
-
-def run_cli(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "src.run", *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=timeout)
 
 
 def error_lines(p: subprocess.CompletedProcess) -> list[str]:

@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 import src.run  # noqa: F401 - registers the ${repo:} resolver used by conf/paths
 from src.reporting import make_report, render
 from src.reporting.aggregate import ReportSpec
+from tests.cli_runs import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 SWEEP_DIR = REPO / "sweeps"
@@ -134,12 +135,6 @@ def test_sweep_jobs_compose_and_tabulate(name):
 
 
 # ------------------------------------------------------------------ end-to-end (subprocess) tests
-
-
-def run_cli(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "src.run", *args], cwd=REPO, capture_output=True, text=True, timeout=timeout
-    )
 
 
 @pytest.fixture(scope="module")
