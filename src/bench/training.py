@@ -176,15 +176,16 @@ def _bench_setup(cfg: DictConfig, dynamic: bool, n_splats: int, width: int, dev:
     from src.core.cameras import Camera, look_at
     from src.data.base import View
     from src.trainer.trainer import Trainer
-    from src.utils.instantiate import build
+    from src.utils.instantiate import build, takes
 
     g = torch.Generator().manual_seed(0)
     d = torch.randn(n_splats, 3, generator=g)
     pts = d / d.norm(dim=1, keepdim=True) * (0.5 + 0.1 * torch.rand(n_splats, 1, generator=g))
     model = build(cfg.model, init=pts.to(dev), n_frames=BENCH_FRAMES if dynamic else 1).to(dev)
     rasterizer = build(cfg.rasterizer)
-    loss_fn = build(cfg.loss)
-    optimizer = build(cfg.optim)(groups=model.param_groups(), extent=4.0)
+    extent = 4.0  # the scene extent of the learning rates and of a loss that takes one (as the trainer's fit_scene)
+    loss_fn = build(cfg.loss, **takes(cfg.loss, extent=extent, generator=g))
+    optimizer = build(cfg.optim)(groups=model.param_groups(), extent=extent)
     f = 0.5 * width / math.tan(0.5 * 0.69)
     w2c = look_at(torch.tensor([0.0, -4.0, 1.0]), torch.zeros(3))
     cam = Camera(w2c, f, f, width / 2, width / 2, width, width).to(dev)
