@@ -318,6 +318,14 @@ def test_prune_removes_exactly_the_splats_below_the_threshold():
     assert prune_below(every, opt2, 0.5) == 0 and every.n_splats == 2  # never the whole set
 
 
+def test_prune_of_a_model_without_per_splat_opacities_is_a_one_line_config_error(monkeypatch):
+    model, opt = _model([0.2, 0.8])
+    monkeypatch.setattr(model, "opacity_values", lambda: None)  # as a field model before its first forward
+    with pytest.raises(ConfigError, match=r"^strategy=sugar: .*GaussianSplatModel.*3DGS-family model") as err:
+        prune_below(model, opt, 0.5)
+    assert "\n" not in str(err.value) and model.n_splats == 2
+
+
 def test_strategy_prunes_once_at_its_iteration():
     model, opt = _model([0.2, 0.6, 0.4, 0.8])
     strategy = SugarStrategy(prune_at=3, stop_iter=0, reset_every=0)

@@ -11,6 +11,7 @@ import torch
 from src.models.base import SplatModel
 from src.optim.adam import SplatOptimizer
 from src.strategy.default import ADCStrategy
+from src.utils.instantiate import ConfigError
 from src.utils.validate import ConfigValueError
 
 log = logging.getLogger(__name__)
@@ -20,10 +21,15 @@ def prune_below(model: SplatModel, optimizer: SplatOptimizer | None, threshold: 
     """Remove every splat whose opacity is below ``threshold``; returns how many were removed.
 
     Nothing is removed (and 0 returned, with a warning) if no splat would be left.
+
+    Raises:
+        ConfigError: (one line) a model whose opacities are not known per splat (``opacity_values`` None).
     """
     opacities = model.opacity_values()
     if opacities is None:
-        raise ValueError(f"{type(model).__name__} stores no opacities: SuGaR's opacity prune cannot act on it")
+        raise ConfigError(f"strategy=sugar: {getattr(model, 'method', '') or type(model).__name__} "
+                          f"({type(model).__name__}) has no per-splat opacities for SuGaR's opacity prune to read; "
+                          "use it with a 3DGS-family model (+experiment=sugar: gs3d's)")
     mask = opacities < threshold  # [N]
     n = int(mask.sum())
     if n == 0:
