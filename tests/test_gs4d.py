@@ -13,8 +13,8 @@ from hydra import compose, initialize_config_dir
 from torch.distributions import MultivariateNormal
 
 from src.data.multiview import BlenderMVDataset
+from src.fields.flows import quat_to_rotmat_wxyz
 from src.losses.objective import SplatLoss
-from src.models.gaussians import _quat_to_rotmat
 from src.models.gs4d import (
     Gaussian4DModel,
     condition_on_time,
@@ -91,7 +91,7 @@ def test_isoclinic_rotation_is_proper_and_identity_at_identity():
     torch.testing.assert_close(isoclinic_rotation(one, one), torch.eye(4, dtype=F64)[None])
     # q_r = conj(q_l): the 3D rotation of q_l on (x, y, z), t fixed
     spatial = isoclinic_rotation(ql, _conj(ql))
-    torch.testing.assert_close(spatial[:, :3, :3], _quat_to_rotmat(F.normalize(ql, dim=-1)))
+    torch.testing.assert_close(spatial[:, :3, :3], quat_to_rotmat_wxyz(F.normalize(ql, dim=-1)))
     torch.testing.assert_close(spatial[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F64).expand(32, 4))
     assert not torch.allclose(rot[:, 3, :3], torch.zeros(32, 3, dtype=F64))  # a general one mixes space and time
 
@@ -135,7 +135,7 @@ def test_time_aligned_splat_slices_to_its_spatial_gaussian(t_offset):
     means4, log_s, ql, _ = _random_4d(10, seed=5)
     means, cov, marginal = condition_on_time(means4, isoclinic_rotation(ql, _conj(ql)), log_s.exp(),
                                              means4[:, 3] + t_offset)
-    r3 = _quat_to_rotmat(F.normalize(ql, dim=-1))
+    r3 = quat_to_rotmat_wxyz(F.normalize(ql, dim=-1))
     torch.testing.assert_close(means, means4[:, :3])
     torch.testing.assert_close(cov, r3 @ torch.diag_embed(log_s[:, :3].exp() ** 2) @ r3.transpose(1, 2))
     torch.testing.assert_close(marginal, torch.exp(-0.5 * t_offset**2 / log_s[:, 3].exp() ** 2))
@@ -155,14 +155,14 @@ def test_slicing_gradcheck_float64():
 def test_rotmat_to_quat_round_trips():
     q = F.normalize(torch.randn(64, 4, generator=torch.Generator().manual_seed(7), dtype=F64), dim=-1)
     q = torch.cat([q, torch.eye(4, dtype=F64)])  # the four branches' extremes
-    back = rotmat_to_quat(_quat_to_rotmat(q))
+    back = rotmat_to_quat(quat_to_rotmat_wxyz(q))
     torch.testing.assert_close(back, torch.where(q[:, :1] < 0, -q, q))
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
 def test_covariance_to_scale_quat_reproduces_the_covariance(dtype):
     cov = _spd(64, seed=8, dtype=dtype)
-    r = _quat_to_rotmat(F.normalize(torch.randn(3, 4, generator=torch.Generator().manual_seed(9)), dim=-1)).to(dtype)
+    r = quat_to_rotmat_wxyz(torch.randn(3, 4, generator=torch.Generator().manual_seed(9))).to(dtype)
     degenerate = r @ torch.diag_embed(torch.tensor([[0.04, 0.04, 0.04], [0.01, 0.09, 0.09], [0.02, 0.02, 0.3]],
                                                    dtype=dtype)) @ r.transpose(1, 2)
     cov = torch.cat([cov, degenerate])

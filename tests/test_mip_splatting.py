@@ -23,7 +23,8 @@ import torch
 
 from src.core.cameras import Camera
 from src.core.splats import Splats
-from src.models.gaussians import GaussianSplatModel, _quat_to_rotmat
+from src.fields.flows import quat_to_rotmat_wxyz
+from src.models.gaussians import GaussianSplatModel
 from src.models.mip_splatting import MipGaussianSplatModel, filter_variance, max_sampling_rate, smoothed_scales
 from src.rasterizer.cpu import CpuRasterizer
 from src.rasterizer.projection import AA_RATIO_MIN, EPS2D, project_splats
@@ -51,7 +52,7 @@ def test_smoothed_scales_equal_the_explicitly_filtered_covariance():
     log_s = (torch.rand(n, 3, generator=g, dtype=torch.float64) * 6 - 7)  # 1e-3 .. 0.4
     var = torch.rand(n, generator=g, dtype=torch.float64) * 1e-3
     q = torch.nn.functional.normalize(torch.randn(n, 4, generator=g, dtype=torch.float64), dim=-1)
-    R = _quat_to_rotmat(q)  # [N, 3, 3]
+    R = quat_to_rotmat_wxyz(q)  # [N, 3, 3]
     s = log_s.exp()
     cov = R @ torch.diag_embed(s * s) @ R.transpose(1, 2)
     cov_f = cov + var[:, None, None] * torch.eye(3, dtype=torch.float64)
@@ -183,7 +184,7 @@ def test_model_checkpoint_round_trip_with_another_splat_count():
 
 def _explicit_cov2d(s: Splats, cam: Camera) -> torch.Tensor:
     """[N, 2, 2] J W Sigma W^T J^T from 3x3 matrices (float64; no frustum clamp: on-screen splats)."""
-    R = _quat_to_rotmat(torch.nn.functional.normalize(s.quats, dim=-1))
+    R = quat_to_rotmat_wxyz(torch.nn.functional.normalize(s.quats, dim=-1))
     cov = R @ torch.diag_embed(s.scales**2) @ R.transpose(1, 2)
     W = cam.world_to_cam[:3, :3]
     t = s.means @ W.T + cam.world_to_cam[:3, 3]

@@ -8,6 +8,7 @@ from torch import Tensor, nn
 
 from src.core.cameras import Camera
 from src.core.splats import Splats
+from src.fields.flows import quat_to_rotmat_wxyz
 from src.models.free import FreeSplatModel, logit
 from src.models.knn import knn_base_scale
 from src.models.sh import eval_sh, rgb_to_sh0
@@ -81,10 +82,10 @@ class GaussianSplatModel(FreeSplatModel):
         divided by 0.8 n_split."""
         p = {k: v.data for k, v in self.params.items()}
         s = torch.exp(p["scales"][idx]).repeat(n_split, 1)
-        q = F.normalize(p["quats"][idx], dim=-1).repeat(n_split, 1)
+        q = p["quats"][idx].repeat(n_split, 1)  # [M, 4] wxyz, normalised by quat_to_rotmat_wxyz
         samples = torch.randn(s.shape, generator=generator).to(s) * s
         samples = F.pad(samples, (0, 3 - samples.shape[1]))  # [M, 3]; 2D surfels (two scales) sample in-plane
-        rot = _quat_to_rotmat(q)
+        rot = quat_to_rotmat_wxyz(q)  # [M, 3, 3]
         children = {k: v[idx].repeat(n_split, *([1] * (v.ndim - 1))) for k, v in p.items()}
         children["means"] = torch.einsum("nij,nj->ni", rot, samples) + p["means"][idx].repeat(n_split, 1)
         children["scales"] = torch.log(s / (0.8 * n_split))
@@ -125,13 +126,3 @@ class GaussianSplatModel(FreeSplatModel):
         new = {k: v.data[targets].clone() for k, v in self.params.items()}
         self._edit(optimizer, None, new)
         self._zero_moments(optimizer, targets)
-
-
-def _quat_to_rotmat(q: Tensor) -> Tensor:
-    """[N, 3, 3] rotation matrices of unit quaternions [N, 4] (w, x, y, z)."""
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(-1, 3, 3)
