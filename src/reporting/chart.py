@@ -241,8 +241,10 @@ def save_figure(fig: Figure, path: Path | str, fmt: str, dpi: int, **kwargs: Any
 
 
 def _save(fig: Figure, out_dir: Path, stem: str) -> list[Path]:
-    """Write ``<stem>.png`` and ``<stem>.svg`` (the SVG without a date, so that redraws compare equal)."""
-    return [save_figure(fig, out_dir / f"{stem}.{fmt}", fmt, 120, metadata={"Date": None} if fmt == "svg" else None)
+    """Write ``<stem>.png`` and ``<stem>.svg`` (the SVG without a date, so that redraws compare equal); the
+    bounding box is fitted to the drawing, so a legend wider than the figure is not clipped."""
+    return [save_figure(fig, out_dir / f"{stem}.{fmt}", fmt, 120, bbox_inches="tight",
+                        metadata={"Date": None} if fmt == "svg" else None)
             for fmt in ("png", "svg")]
 
 
