@@ -32,7 +32,8 @@ JOBS["formats/dtu_neus/trinkets"] = lambda out, limit: static_scenes.render_dtu(
 import capture_scenes  # noqa: E402
 import heldout_scenes  # noqa: E402
 
-# Held-out scenes: rendered only when named (--only heldout/NAME), never part of the shipped data/.
+# Held-out scenes: rendered only when named (--only heldout/NAME, dynamic_mv/mocap_trial3), never part of the
+# shipped data/.
 HELDOUT_JOBS = {
     f"heldout/{n}": functools.partial(static_scenes.render_static, n, builders=heldout_scenes.HELDOUT_SCENES,
                                       group="heldout")
