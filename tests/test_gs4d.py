@@ -317,3 +317,13 @@ def test_experiment_refuses_a_static_scene(tmp_path):
         cfg = compose(config_name="config", overrides=overrides)
     with pytest.raises(ConfigError, match="models motion"):
         run(cfg, tmp_path / "run")
+
+
+def test_parameters_are_built_on_the_initial_points_device(monkeypatch):
+    """A CUDA run hands the model its initial points on the GPU: every parameter is made on that device (the
+    "meta" device stands in for the GPU; the kNN scale, which goes through NumPy, is replaced)."""
+    import src.models.gs4d as gs4d_module
+
+    monkeypatch.setattr(gs4d_module, "knn_base_scale", lambda p: torch.ones(len(p), device=p.device))
+    model = Gaussian4DModel(torch.zeros(6, 3, device="meta"), n_frames=5)
+    assert {name: p.device.type for name, p in model.params.items()} == dict.fromkeys(model.params, "meta")

@@ -235,18 +235,20 @@ class Gaussian4DModel(FreeSplatModel):
         self.marginal_threshold = float(marginal_threshold)
         self.gap_damping = float(gap_damping)
         sigma_t = float(time_scale_frames) / max(self.n_frames - 1, 1)
+        dev = init.device  # every parameter on the initial points' device (a CUDA run builds on the GPU)
         spatial = torch.log(knn_base_scale(init) * init_scale_mult)[:, None].repeat(1, 3)  # [N, 3]
-        identity = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1)
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], device=dev).repeat(n, 1)
         k = self.n_fourier * (self.max_sh_degree + 1) ** 2
         self.params = nn.ParameterDict({
             "means": nn.Parameter(init.float().clone()),
-            "times": nn.Parameter(torch.rand(n) * (1 + 2 * time_margin) - time_margin),
-            "scales": nn.Parameter(torch.cat([spatial.float(), torch.full((n, 1), math.log(sigma_t))], dim=1)),
+            "times": nn.Parameter(torch.rand(n, device=dev) * (1 + 2 * time_margin) - time_margin),
+            "scales": nn.Parameter(torch.cat([spatial.float(), torch.full((n, 1), math.log(sigma_t), device=dev)],
+                                             dim=1)),
             "quats": nn.Parameter(identity.clone()),
             "quats_r": nn.Parameter(identity.clone()),
-            "opacities": nn.Parameter(torch.full((n,), logit(init_opacity))),
-            "sh0": nn.Parameter(rgb_to_sh0(torch.full((n, 1, 3), float(init_color)))),
-            "sh_rest": nn.Parameter(torch.zeros(n, k - 1, 3)),
+            "opacities": nn.Parameter(torch.full((n,), logit(init_opacity), device=dev)),
+            "sh0": nn.Parameter(rgb_to_sh0(torch.full((n, 1, 3), float(init_color), device=dev))),
+            "sh_rest": nn.Parameter(torch.zeros(n, k - 1, 3, device=dev)),
         })
 
     # -- slicing and colour ----------------------------------------------------------------------
