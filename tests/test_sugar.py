@@ -427,6 +427,16 @@ def test_mesh_points_lie_in_the_splats_and_face_the_cameras():
     assert float((normals * pts).sum(-1).min()) > 0.9  # outward: towards the cameras around the sphere
     low = Splats(**{**splats.__dict__, "opacities": torch.full((600,), 0.1, dtype=F64)})
     assert oriented_splat_points(low, cams, 100, 0.5)[0].shape == (0, 3)
+    # splats without area (a zero or non-finite scale among the two largest) are never drawn; none left: no points
+    flat, far = splats.scales.clone(), splats.means.clone()
+    flat[:300, 1:] = 0.0
+    flat[300:310, 2] = float("inf")
+    far[:310] += 10.0  # the splats without area sit far from the sphere: a point drawn on one would show
+    half = Splats(**{**splats.__dict__, "scales": flat, "means": far})
+    pts, _ = oriented_splat_points(half, cams, 2000, 0.5)
+    assert pts.shape == (2000, 3) and float(pts.norm(dim=-1).max()) < 1.5
+    no_area = Splats(**{**splats.__dict__, "scales": torch.zeros_like(splats.scales)})
+    assert oriented_splat_points(no_area, cams, 100, 0.5)[0].shape == (0, 3)
 
 
 def test_without_open3d_the_run_records_that_no_mesh_was_written(tmp_path, monkeypatch):

@@ -45,17 +45,17 @@ def oriented_splat_points(splats: Splats, cameras: Tensor, n_points: int, min_op
     Splats are drawn with probability proportional to the product of their two largest scales (their
     area); each point is mu + R (s * eps) with the component along the shortest axis set to 0, so it lies in
     the splat's plane; its normal is that axis, signed to face the nearest of the camera centres
-    ``cameras`` [C, 3]. M = ``n_points`` (0 if no splat is kept).
+    ``cameras`` [C, 3]. M = ``n_points`` (0 if no splat is kept: none opaque enough with a positive, finite area).
     """
-    keep = splats.opacities >= min_opacity
-    means, scales = splats.means[keep].double(), splats.scales[keep].double()  # [K, 3]
+    ordered = splats.scales.double().sort(-1).values
+    area = ordered[:, 1] * ordered[:, 2]  # [N] product of the two largest scales
+    keep = (splats.opacities >= min_opacity) & torch.isfinite(area) & (area > 0)  # a flat-out splat has no area
+    means, scales, area = splats.means[keep].double(), splats.scales[keep].double(), area[keep]  # [K, 3], [K]
     if means.shape[0] == 0 or n_points <= 0:
         empty = torch.zeros(0, 3, dtype=torch.float64)
         return empty, empty
     rotations = quat_to_rotmat_wxyz(splats.quats[keep].double())  # [K, 3, 3]
     _, shortest, axes = shortest_axis(rotations, scales)  # [K], [K, 3]
-    ordered = scales.sort(-1).values
-    area = ordered[:, 1] * ordered[:, 2]  # [K] product of the two largest scales
     g = torch.Generator().manual_seed(int(seed))
     pick = torch.multinomial(area / area.sum(), int(n_points), replacement=True, generator=g)  # [M]
     eps = torch.randn(int(n_points), 3, generator=g, dtype=torch.float64)
@@ -150,7 +150,7 @@ class PoissonMesh:
         points, normals = oriented_splat_points(splats.detach().to("cpu"), cameras.detach().cpu(), self.n_points,
                                                 self.min_opacity, self.seed)
         if points.shape[0] == 0:
-            reason = f"no splat with opacity >= {self.min_opacity}: no mesh.ply written"
+            reason = f"no splat with opacity >= {self.min_opacity} and a positive area: no mesh.ply written"
             log.warning("mesh=poisson: %s", reason)
             return {"written": False, "reason": reason}
         try:
