@@ -133,19 +133,15 @@ def main(argv=None):
                     help="multi-view scenes under DATA/dynamic_mv to export in the OwlII layout, and nothing else "
                          f"(default: the shipped {OWLII_SCENES} and the Nerfies {NERFIES_SCENES})")
     args = ap.parse_args(argv)
-    if args.owlii is not None:
-        needed = ("transforms_train.json", "transforms_test.json", "gt_points.npz")
-        for s in args.owlii:  # checked before any export: an export first removes its destination
-            missing = [f for f in needed if not (args.data / "dynamic_mv" / s / f).is_file()]
-            if missing:
-                ap.error(f"--owlii {s}: {args.data / 'dynamic_mv' / s} is not a rendered multi-view scene "
-                         f"(expected {', '.join(needed)}; missing {', '.join(missing)})")
-        for s in args.owlii:
-            print(f"[datagen] formats/owlii_neus/{s}: {export_owlii(args.data, s)} images")
-        return
-    for s in OWLII_SCENES:
+    needed = ("transforms_train.json", "transforms_test.json", "gt_points.npz")
+    for s in args.owlii or ():  # checked before any export: an export first removes its destination
+        missing = [f for f in needed if not (args.data / "dynamic_mv" / s / f).is_file()]
+        if missing:
+            ap.error(f"--owlii {s}: {args.data / 'dynamic_mv' / s} is not a rendered multi-view scene "
+                     f"(expected {', '.join(needed)}; missing {', '.join(missing)})")
+    for s in OWLII_SCENES if args.owlii is None else args.owlii:
         print(f"[datagen] formats/owlii_neus/{s}: {export_owlii(args.data, s)} images")
-    for s in NERFIES_SCENES:
+    for s in NERFIES_SCENES if args.owlii is None else ():
         print(f"[datagen] formats/nerfies/{s}: {export_nerfies(args.data, s)} images")
 
 
