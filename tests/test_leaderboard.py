@@ -112,6 +112,20 @@ def test_equal_validation_scores_go_to_the_cheaper_budget(tmp_path: Path) -> Non
     assert gs.stat("psnr").mean == pytest.approx(21.0)
 
 
+def test_budgets_are_compared_on_the_seeds_they_share(tmp_path: Path) -> None:
+    """x1 ran seeds 0 and 1, x2 seed 0 only: x2 wins on seed 0 (19.5 against 19.0), and x1's lucky seed 1 (22.0)
+    must not decide; over all of each budget's seeds x1 would score 20.5."""
+    for scene in ("a", "b"):
+        write_run(tmp_path, f"x1_s0_{scene}", scene=scene, budget=1, curve=((50, 18.0), (100, 19.0)))
+        write_run(tmp_path, f"x1_s1_{scene}", scene=scene, seed=1, budget=1, curve=((50, 18.0), (100, 22.0)))
+        write_run(tmp_path, f"x2_s0_{scene}", scene=scene, budget=2, curve=((100, 18.0), (200, 19.5)))
+    board = board_of(tmp_path)
+    gs = entry(board, "gs3d")
+    assert gs.chosen is not None and gs.chosen.value == 2
+    assert {b.value: sc.score for b, sc in gs.scores.items()} == {1: pytest.approx(19.0), 2: pytest.approx(19.5)}
+    assert "budgets compared on the scenes and seeds all of them finished (a, b; seed 0)" in render_markdown(board)
+
+
 def test_a_run_without_a_validation_curve_cannot_be_selected(tmp_path: Path) -> None:
     write_run(tmp_path, "x1", budget=1, curve=((50, 18.0), (100, 19.0)))
     write_run(tmp_path, "x2", budget=2, psnr=30.0, curve=((100, 25.0), (200, 29.0)), split="test")

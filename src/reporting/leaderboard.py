@@ -7,7 +7,7 @@ is set and not ``none``. Its candidate budgets are the values of ``keys.budget_s
 ``keys.iterations``) among its runs. For every method and view count (``keys.n_views``) the budget
 with the highest *selection score* is chosen: the mean over scenes (of the mean over seeds) of the
 final validation PSNR, the last point of the run's ``curve`` when ``curve_split`` is ``val``. Budgets
-are compared on the scenes every candidate has a score for; equal scores go to the cheaper budget.
+are compared on the (scene, seed) pairs every candidate has a score for; equal scores go to the cheaper budget.
 A run without a validation curve cannot be selected. Test views are read only for the reported
 numbers at the chosen budget:
 
@@ -51,8 +51,9 @@ BUDGET_KEYS = ("budget_scale", "iterations")
 TIE_TOLERANCE = 1e-9  # selection scores closer than this (dB) are equal
 SELECTION_RULE = (
     "For every method and view count the budget (keys.budget_scale, else keys.iterations) with the highest "
-    "mean final validation PSNR over scenes and seeds is chosen (budgets compared on the scenes all of them "
-    "finished; ties go to the cheaper budget); test views are read only for the numbers reported at that budget."
+    "mean final validation PSNR over scenes and seeds is chosen (budgets compared on the scenes and seeds all of "
+    "them finished; ties go to the cheaper budget); test views are read only for the numbers reported at that "
+    "budget."
 )
 
 
@@ -272,26 +273,43 @@ class BudgetScore:
 
 
 def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> tuple[dict[Budget, BudgetScore], list[str]]:
-    """Each budget's mean final validation PSNR over the scenes every scored budget has; notes."""
-    finals = {b: scene_means(runs, Run.final_val) for b, runs in groups.items()}
+    """Each budget's mean final validation PSNR over the (scene, seed) pairs every scored budget has; notes.
+
+    A budget run with more seeds than another is scored on the seeds they share, so one seed's luck cannot
+    decide between budgets; without a shared pair each budget is scored on its own runs.
+    """
+    finals = {b: _pair_means(runs, Run.final_val) for b, runs in groups.items()}
     scored = [set(s) for s in finals.values() if s]
     common = set.intersection(*scored) if scored else set()
     notes = []
     if len(scored) > 1 and not common:
         notes.append("its budgets share no scene with a validation score: each is scored on its own scenes")
     elif any(s != common for s in scored):
-        notes.append(f"budgets compared on the scenes all of them finished ({', '.join(sorted(common))})")
+        scenes, seeds = sorted({sc for sc, _ in common}), sorted({sd for _, sd in common})
+        notes.append(f"budgets compared on the scenes and seeds all of them finished ({', '.join(scenes)}; "
+                     f"seed {', '.join(seeds)})")
     scores = {}
     for budget in sorted(groups):
-        runs, per_scene = groups[budget], finals[budget]
-        use = sorted(s for s in per_scene if s in common or not common)
-        score = statistics.fmean(per_scene[s] for s in use) if use else None
+        runs, per_pair = groups[budget], finals[budget]
+        use = [pair for pair in sorted(per_pair) if pair in common or not common]
+        by_scene: dict[str, list[float]] = defaultdict(list)
+        for scene, seed in use:
+            by_scene[scene].append(per_pair[(scene, seed)])
+        score = statistics.fmean(statistics.fmean(vs) for vs in by_scene.values()) if by_scene else None
         scores[budget] = BudgetScore(
-            budget, score, tuple(use), len(runs), sum(r.record.status == "failed" for r in runs),
+            budget, score, tuple(sorted(by_scene)), len(runs), sum(r.record.status == "failed" for r in runs),
             sum(r.record.status in ("running", "interrupted") for r in runs),
             sum(r.ok and not r.val_curve() for r in runs),
         )  # fmt: skip
     return scores, notes
+
+
+def _pair_means(runs: Iterable[Run], value: Value) -> dict[tuple[str, str], float]:
+    """(scene, seed) → mean of ``value`` over the ok runs that have one (repeats of a pair averaged)."""
+    groups: dict[tuple[str, str], list[float]] = defaultdict(list)
+    for run, v in _values(runs, value):
+        groups[(run.scene, str(run.seed))].append(v)
+    return {pair: statistics.fmean(vs) for pair, vs in groups.items()}
 
 
 def choose_budget(scores: Mapping[Budget, BudgetScore]) -> Budget | None:
