@@ -283,7 +283,8 @@ def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> tuple[dict[Budget, 
     common = set.intersection(*scored) if scored else set()
     notes = []
     if len(scored) > 1 and not common:
-        notes.append("its budgets share no scene with a validation score: each is scored on its own scenes")
+        notes.append("its budgets share no (scene, seed) pair with a validation score: each is scored on its own "
+                     "runs")
     elif any(s != common for s in scored):
         scenes, seeds = sorted({sc for sc, _ in common}), sorted({sd for _, sd in common})
         notes.append(f"budgets compared on the scenes and seeds all of them finished ({', '.join(scenes)}; "
