@@ -95,3 +95,21 @@ def test_the_main_job_drops_splats_at_sparse_views_only(experiment, n_views, rat
     recipe = build(cfg.sparse)
     assert recipe.slots["dropout"].max_rate == rate
     assert _compose([experiment, f"dataset.n_views={n_views}", "sparse=none"]).sparse.get("dropout") is None
+
+
+@pytest.mark.parametrize("n_views,scale", [(3, 2), (4, 2), (6, 1), (8, 1)])
+def test_the_main_jobs_first_stage_doubles_its_budget_at_sparse_views_only(n_views, scale):
+    """The main job's first stage trains 2x the scale's budget at 4 views or fewer (chosen on validation views),
+    its densification window and opacity-reset interval scaled with it; its second stage and other methods keep
+    theirs."""
+    cfg = _compose(["+experiment=splatfields3d_mip", f"dataset.n_views={n_views}"])
+    stage1 = first_stage_config(cfg)
+    assert stage1.trainer.iterations == 1500 * scale
+    assert (stage1.strategy.start_iter, stage1.strategy.stop_iter, stage1.strategy.reset_every) == (
+        300 * scale, 2500 * scale, 1000 * scale)
+    assert stage1.strategy.every == 100  # the densification interval does not scale
+    assert cfg.trainer.iterations == 600 and cfg.optim.lr.network.max_steps == 1500
+    assert _compose(["+experiment=mip_splatting", f"dataset.n_views={n_views}"]).trainer.iterations == 1500
+    forced = first_stage_config(_compose(["+experiment=splatfields3d_mip", f"dataset.n_views={n_views}",
+                                          "schedule.budget_scale=1"]))
+    assert (forced.trainer.iterations, forced.strategy.stop_iter) == (1500, 2500)  # the command line wins
