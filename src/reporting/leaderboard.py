@@ -36,7 +36,7 @@ from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from src.reporting.aggregate import dedupe, sort_key
 from src.reporting.chart import Point, pareto_front, read_curve
@@ -171,6 +171,7 @@ class Stat:
 
 
 Value = Callable[[Run], float | None]
+K = TypeVar("K")  # a grouping key of runs (a scene, or a (scene, seed) pair)
 
 
 def _values(runs: Iterable[Run], value: Value) -> list[tuple[Run, float]]:
@@ -178,22 +179,27 @@ def _values(runs: Iterable[Run], value: Value) -> list[tuple[Run, float]]:
     return [(run, v) for run, v in pairs if v is not None]
 
 
+def means_by(runs: Iterable[Run], value: Value, key: Callable[[Run], K]) -> dict[K, float]:
+    """``key(run)`` → mean of ``value`` over the ok runs that have one (e.g. per scene, or per (scene, seed))."""
+    groups: dict[K, list[float]] = defaultdict(list)
+    for run, v in _values(runs, value):
+        groups[key(run)].append(v)
+    return {k: statistics.fmean(vs) for k, vs in groups.items()}
+
+
 def scene_means(runs: Iterable[Run], value: Value) -> dict[str, float]:
     """Scene → mean over seeds of ``value`` over the ok runs that have one."""
-    groups: dict[str, list[float]] = defaultdict(list)
-    for run, v in _values(runs, value):
-        groups[run.scene].append(v)
-    return {scene: statistics.fmean(vs) for scene, vs in groups.items()}
+    return means_by(runs, value, lambda run: run.scene)
 
 
 def stat_of(runs: Sequence[Run], value: Value) -> Stat:
     """Mean over scenes of the seed means, and the spread over seeds of each seed's scene mean."""
     scenes = scene_means(runs, value)
-    by_seed: dict[str, dict[str, list[float]]] = defaultdict(lambda: defaultdict(list))
-    for run, v in _values(runs, value):
-        by_seed[str(run.seed)][run.scene].append(v)
+    by_seed: dict[str, dict[str, float]] = defaultdict(dict)  # seed -> scene -> mean of that seed's runs
+    for (seed, scene), v in means_by(runs, value, lambda run: (str(run.seed), run.scene)).items():
+        by_seed[seed][scene] = v
     complete = [d for d in by_seed.values() if set(d) == set(scenes)]
-    means = [statistics.fmean(statistics.fmean(vs) for vs in d.values()) for d in complete]
+    means = [statistics.fmean(d.values()) for d in complete]
     std = statistics.stdev(means) if len(means) >= 2 else None
     return Stat(statistics.fmean(scenes.values()) if scenes else None, std, len(by_seed))
 
@@ -278,7 +284,7 @@ def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> tuple[dict[Budget, 
     A budget run with more seeds than another is scored on the seeds they share, so one seed's luck cannot
     decide between budgets; without a shared pair each budget is scored on its own runs.
     """
-    finals = {b: _pair_means(runs, Run.final_val) for b, runs in groups.items()}
+    finals = {b: means_by(runs, Run.final_val, lambda run: (run.scene, str(run.seed))) for b, runs in groups.items()}
     scored = [set(s) for s in finals.values() if s]
     common = set.intersection(*scored) if scored else set()
     notes = []
@@ -303,14 +309,6 @@ def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> tuple[dict[Budget, 
             sum(r.ok and not r.val_curve() for r in runs),
         )  # fmt: skip
     return scores, notes
-
-
-def _pair_means(runs: Iterable[Run], value: Value) -> dict[tuple[str, str], float]:
-    """(scene, seed) → mean of ``value`` over the ok runs that have one (repeats of a pair averaged)."""
-    groups: dict[tuple[str, str], list[float]] = defaultdict(list)
-    for run, v in _values(runs, value):
-        groups[(run.scene, str(run.seed))].append(v)
-    return {pair: statistics.fmean(vs) for pair, vs in groups.items()}
 
 
 def choose_budget(scores: Mapping[Budget, BudgetScore]) -> Budget | None:
