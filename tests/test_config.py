@@ -149,3 +149,18 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
         assert a == b, key
     # the CLI first stage keeps its own path (no stage1 node there, no prefix)
     assert _compose(["+experiment=gs3d_stage1"]).paths.stage1_dir.endswith("/views8_it1500_seed0")
+
+
+@pytest.mark.parametrize("scale", ["cpu", "paper"])
+def test_budget_scale_scales_every_iteration_count_of_a_schedule(scale):
+    """schedule.budget_scale=N: N x the iterations, densification window, opacity-reset interval and the warm-ups
+    (2DGS's losses, Deformable-3DGS and 4DGaussians); the densification interval stays."""
+    one, two = (_compose([f"scale={scale}", "+experiment=gs2d", f"schedule.budget_scale={n}"]) for n in (1, 2))
+    assert two.trainer.iterations == 2 * one.trainer.iterations
+    for key in ("start_iter", "stop_iter", "reset_every"):
+        assert two.strategy[key] == 2 * one.strategy[key], key
+    assert two.strategy.every == one.strategy.every
+    assert (two.loss.dist_from, two.loss.normal_from) == (2 * one.loss.dist_from, 2 * one.loss.normal_from)
+    for exp, key in (("deformable3dgs", "model.warm_up"), ("gaussians4d", "model.warm_up")):
+        a, b = (_compose([f"scale={scale}", f"+experiment={exp}", f"schedule.budget_scale={n}"]) for n in (1, 2))
+        assert OmegaConf.select(b, key) == 2 * OmegaConf.select(a, key), exp
