@@ -12,6 +12,7 @@ configure_openmp()  # before anything loads torch's OpenMP runtime (src/kernels/
 
 import errno
 import logging
+import math
 import sys
 import time
 import traceback
@@ -22,6 +23,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
 
 from src.data.base import DatasetError
 from src.data.validate import validate_scene
@@ -60,8 +62,20 @@ if not OmegaConf.has_resolver("if_at_most"):
     OmegaConf.register_new_resolver("if_at_most", if_at_most)
 if not OmegaConf.has_resolver("sparse_tag"):  # a first stage's ingredient in its cache directory's name
     OmegaConf.register_new_resolver("sparse_tag", ingredient_tag)
-if not OmegaConf.has_resolver("times"):  # a schedule scaled with its budget (sweeps/fair_budget.yaml)
-    OmegaConf.register_new_resolver("times", lambda a, b: round(float(a) * float(b)))
+def times(base, factor) -> int:
+    """``${times:BASE,FACTOR}``: BASE x FACTOR, rounded: a schedule scaled with its budget (``schedule.budget_scale``,
+    conf/scale/). A factor that is not a positive number is refused naming ``schedule.budget_scale``."""
+    try:
+        x = float(factor)
+    except (TypeError, ValueError):
+        x = math.nan
+    if not math.isfinite(x) or x <= 0:
+        raise ValueError(f"schedule.budget_scale={factor!r}: expected a positive number")
+    return round(float(base) * x)
+
+
+if not OmegaConf.has_resolver("times"):
+    OmegaConf.register_new_resolver("times", times)
 
 
 def resolve_device(name: str) -> torch.device:
@@ -149,6 +163,8 @@ def run(cfg: DictConfig, run_dir: Path | None = None) -> dict:
     try:
         with stop_on_signals():
             return _run_locked(cfg, run_dir, ctx)
+    except InterpolationResolutionError as e:  # a value the config cannot resolve: one line naming the key
+        raise ConfigValueError(f"{e.full_key}: {str(e).splitlines()[0]}") from None  # not its key / type lines
     except OSError as e:  # e.g. the disk filled up while writing a checkpoint: the last good one stays
         raise unwritable(e, run_dir) or e from None
     finally:

@@ -206,3 +206,13 @@ def test_files_are_left_readable_by_the_group(gs3d_checkpoint):
     os.umask(umask)
     for name in ("metrics.json", "checkpoint.pt", "splats.ply"):
         assert (gs3d_checkpoint.parent / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
+
+
+@pytest.mark.parametrize("value", ["abc", "0", "-1"])
+def test_a_budget_scale_that_is_not_a_positive_number_is_one_line(tmp_path, value):
+    """schedule.budget_scale feeds every ${times:...} of the scale's schedule: refused in one line naming it,
+    before a record is written."""
+    run_dir = tmp_path / "run"
+    p = run_cli("+experiment=gs3d", f"schedule.budget_scale={value}", f"hydra.run.dir={run_dir}")
+    assert_one_line(p, "schedule.budget_scale=", value, "expected a positive number")
+    assert not (run_dir / "metrics.json").exists()
