@@ -104,6 +104,21 @@ def test_budget_is_chosen_on_validation_even_when_test_prefers_the_other(tmp_pat
     assert row[3].startswith("×2") and row[5] == "22.00"
 
 
+def test_a_choice_at_the_largest_budget_tried_is_marked(tmp_path: Path) -> None:
+    """gs3d's validation PSNR still rises at its largest budget (x2): its row may sit below its converged one and
+    says so; mip_splatting's peaks at x2 of x1 / x2 / x3 and is not marked."""
+    for budget, val in ((1, 19.0), (2, 20.0)):
+        write_run(tmp_path, f"gs_x{budget}", budget=budget, curve=((50, 18.0), (100, val)))
+    for budget, val in ((1, 19.0), (2, 20.5), (3, 20.2)):
+        write_run(tmp_path, f"mip_x{budget}", experiment="mip_splatting", budget=budget, curve=((50, 18.0), (100, val)))
+    board = board_of(tmp_path)
+    assert entry(board, "gs3d").chose_largest() and not entry(board, "mip_splatting").chose_largest()
+    text = render_markdown(board)
+    assert table_row(text, "gs3d")[3].startswith("×2↑") and table_row(text, "mip_splatting")[3].startswith("×2 ")
+    assert method_json(board, "gs3d")["chosen_is_largest_tried"] is True
+    assert method_json(board, "mip_splatting")["chosen_is_largest_tried"] is False
+
+
 def test_equal_validation_scores_go_to_the_cheaper_budget(tmp_path: Path) -> None:
     write_run(tmp_path, "a_first", budget=2, psnr=24.0, curve=((100, 18.0), (200, 20.0)))
     write_run(tmp_path, "b_second", budget=1, psnr=21.0, curve=((50, 17.0), (100, 20.0)))

@@ -46,6 +46,7 @@ from src.utils.record import OutputBusy, atomic_write_text, cli_error, os_error_
 DEFAULT_REFERENCE = "splatfields3d_mip"
 DASH = "–"
 PAST_END = "†"
+LARGEST = "↑"  # the chosen budget is the largest one scored: a larger budget was not tried
 VAL_SPLIT = "val"
 BUDGET_KEYS = ("budget_scale", "iterations")
 TIE_TOLERANCE = 1e-9  # selection scores closer than this (dB) are equal
@@ -365,6 +366,16 @@ class Entry:
     def val_score(self) -> float | None:
         return self.scores[self.chosen].score if self.chosen else None
 
+    def chose_largest(self) -> bool:
+        """Whether the chosen budget is the largest with a validation score: no larger budget was tried, so the
+        method may not have converged (its row may sit below its best)."""
+        scored = [b for b, s in self.scores.items() if s.score is not None]
+        return self.chosen is not None and self.chosen == max(scored)
+
+    def budget_label(self) -> str:
+        """The chosen budget's label (``×2``), marked ``↑`` when it is the largest tried; "" without one."""
+        return self.chosen.label() + (LARGEST if self.chose_largest() else "") if self.chosen else ""
+
     def iterations(self) -> list[Any]:
         """The distinct ``keys.iterations`` of the chosen budget's runs."""
         values = {(r.record.data.get("keys") or {}).get("iterations") for r in self.chosen_runs}
@@ -532,7 +543,7 @@ def _budget_cell(board: Leaderboard, entry: Entry) -> str:
     if entry.chosen is None:
         return DASH + _refs(board, entry.runs)
     its = entry.iterations()
-    return entry.chosen.label() + (f" ({its[0]} it)" if len(its) == 1 and entry.chosen.key != "iterations" else "")
+    return entry.budget_label() + (f" ({its[0]} it)" if len(its) == 1 and entry.chosen.key != "iterations" else "")
 
 
 def _scores_cell(board: Leaderboard, entry: Entry) -> str:
@@ -586,6 +597,8 @@ def legend(board: Leaderboard) -> str:
     """What the columns of :func:`main_table` mean."""
     times = ", ".join(f"{v} views {t:.1f} s" for v, t in board.ref_times.items() if t is not None) or "none"
     return (
+        f"budget: {LARGEST} = the largest budget tried was chosen (a larger one was not tried: the row may sit "
+        "below the method's converged one). "
         "test PSNR / SSIM: mean over scenes at the chosen budget, ± std over seeds of the scene mean (≥ 2 seeds). "
         "train time: train_s + stage1_train_s (+ capacity_search_s), mean over scenes. "
         f"val PSNR @ ref. time: validation PSNR at {board.reference}'s mean total training time ({times}), "
@@ -663,7 +676,8 @@ def entry_json(board: Leaderboard, entry: Entry) -> dict[str, Any]:
     at = entry.at_ref
     return {
         "method": entry.method, "n_views": entry.n_views, "chosen_budget": _budget_json(entry.chosen, entry),
-        "val_psnr": entry.val_score(), "val_psnr_by_budget": scores,
+        "chosen_is_largest_tried": entry.chose_largest(), "val_psnr": entry.val_score(),
+        "val_psnr_by_budget": scores,
         "test_psnr": _stat_json(entry.stat("psnr")), "test_ssim": _stat_json(entry.stat("ssim")),
         "train_s": entry.train_s(),
         "equal_time_val_psnr": None if at is None else {"time_s": at.time_s, "value": at.value,
@@ -705,7 +719,7 @@ def draw_curves(board: Leaderboard, out_dir: Path) -> list[Path]:
     fig = Figure(figsize=(max(7.5, 1.5 + 5.0 * len(views)), 5.2), layout="constrained")
     for ax, n_views in zip(fig.subplots(1, len(views), squeeze=False)[0], views, strict=True):
         _draw_panel(ax, board, n_views, style)
-    drawn = {e.method: e.chosen.label() for e in board.entries if e.chosen and e.curve()}
+    drawn = {e.method: e.budget_label() for e in board.entries if e.chosen and e.curve()}
     handles = [Line2D([], [], color=style.colour(m, ""), marker=style.marker(m), label=f"{m} ({drawn[m]})")
                for m in style.methods if m in drawn]  # fmt: skip
     handles.append(Line2D([], [], color="0.55", lw=6, alpha=0.45, label="Pareto front (best PSNR by this time)"))
@@ -730,7 +744,7 @@ def _draw_panel(ax: Any, board: Leaderboard, n_views: Any, style: Any) -> None:
         if not curve:
             continue
         points += curve
-        label = entry.chosen.label() if entry.chosen else ""
+        label = entry.budget_label()
         ax.plot([t for t, _ in curve], [y for _, y in curve], color=style.colour(entry.method, ""), lw=1.2,
                 marker=style.marker(entry.method), markersize=4, zorder=3, label=f"{entry.method} {label}")  # fmt: skip
     if not points:
