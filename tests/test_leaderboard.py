@@ -219,6 +219,18 @@ def test_pareto_staircase_of_hand_made_points() -> None:
     assert pareto_staircase(points) == [(1.0, 10.0), (3.0, 12.0), (5.0, 13.0)]
 
 
+def test_the_best_method_at_every_budget_is_named(tmp_path: Path) -> None:
+    """A fast method holds the front until a slow one passes it; a point of the slow one below the fast one's best
+    does not end the fast one's stretch, and the slow one's stretch starts where it first leads."""
+    write_run(tmp_path, "fast", experiment="dropgaussian", curve=((1.0, 17.0), (5.0, 19.0), (10.0, 19.2)))
+    write_run(tmp_path, "slow", experiment="mip_splatting", curve=((8.0, 18.0), (50.0, 19.5), (100.0, 20.0)))
+    board = board_of(tmp_path)
+    front = to_json(board)["front_by_time"]["4"]
+    assert [(s["method"], s["from_s"], s["to_s"], s["val_psnr"]) for s in front] == [
+        ("dropgaussian (×1↑)", 1.0, 10.0, 19.2), ("mip_splatting (×1↑)", 50.0, 100.0, 20.0)]  # fmt: skip
+    assert "from 1.0 s dropgaussian (×1↑) (19.20 dB at 10.0 s) · from 50.0 s mip_splatting" in render_markdown(board)
+
+
 def test_a_failed_run_is_a_dash_with_its_reason(tmp_path: Path) -> None:
     write_run(tmp_path, "ok_a", scene="a", psnr=21.0)
     write_run(tmp_path, "bad_b", scene="b", status="failed", reason="diverged: loss is NaN at step 300")

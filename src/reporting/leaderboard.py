@@ -34,7 +34,7 @@ import statistics
 import sys
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -522,6 +522,40 @@ def lead_text(board: Leaderboard, lead: Lead) -> str:
     return text + "."
 
 
+@dataclass(frozen=True)
+class FrontSegment:
+    """A stretch of the Pareto front over the validation curves held by one method (and its chosen budget):
+    its first front point at ``start_s``, its last at ``end_s`` with validation PSNR ``psnr``."""
+
+    method: str
+    start_s: float
+    end_s: float
+    psnr: float
+
+
+def front_by_time(board: Leaderboard, n_views: Any) -> list[FrontSegment]:
+    """Which method is best at every training budget: the Pareto front of the mean validation curves (at the
+    chosen budgets; total wall time) at one view count, consecutive points of one method merged."""
+    points = [Point(f"{e.method} ({e.budget_label()})", "", t, 0.0, y, 0.0, 1)
+              for e in board.entries if e.n_views == n_views for t, y in e.curve() if t > 0]  # fmt: skip
+    segments: list[FrontSegment] = []
+    for p in pareto_front(points):
+        if segments and segments[-1].method == p.row:
+            segments[-1] = replace(segments[-1], end_s=p.x, psnr=p.y)
+        else:
+            segments.append(FrontSegment(p.row, p.x, p.x, p.y))
+    return segments
+
+
+def front_text(board: Leaderboard, n_views: Any) -> str:
+    """The front as one line: ``from 1.0 s A (19.70 dB at 5.6 s) · from 5.6 s B ...``."""
+    segments = front_by_time(board, n_views)
+    if not segments:
+        return f"{n_views} views: no validation curve"
+    parts = [f"from {s.start_s:.1f} s {s.method} ({s.psnr:.2f} dB at {s.end_s:.1f} s)" for s in segments]
+    return f"{n_views} views: " + " · ".join(parts)
+
+
 # -- Markdown -------------------------------------------------------------------------------------
 
 
@@ -640,6 +674,9 @@ def render_markdown(board: Leaderboard) -> str:
     out = ["### Leaderboard: every method at its own best budget, chosen on validation views", "", *main_table(board),
            "", f"Selection rule: {SELECTION_RULE}", "", legend(board), "", "**Lead:**", ""]  # fmt: skip
     out += [f"- {lead_text(board, lead)}" for lead in leads(board)] + [""]
+    out += ["**Best by training time** (the Pareto front of the validation curves: the method with the highest "
+            "validation PSNR reached by that total wall time, at its chosen budget):", ""]  # fmt: skip
+    out += [f"- {front_text(board, n_views)}" for n_views in board.views()] + [""]
     for n_views in board.views():
         title = f"### Test PSNR per scene at the chosen budgets ({n_views} views)"
         out += [title, "", *scene_table(board, n_views), ""]
@@ -699,7 +736,10 @@ def to_json(board: Leaderboard) -> dict[str, Any]:
         "reference": {"method": board.reference,
                       "train_s": {str(v): t for v, t in board.ref_times.items()}},
         "methods": [entry_json(board, e) for e in board.entries],
-        "lead": lead_rows, "failed_runs": failed, "notes": board.notes,
+        "lead": lead_rows,
+        "front_by_time": {str(v): [{"method": s.method, "from_s": s.start_s, "to_s": s.end_s, "val_psnr": s.psnr}
+                                   for s in front_by_time(board, v)] for v in board.views()},
+        "failed_runs": failed, "notes": board.notes,
     }  # fmt: skip
 
 
