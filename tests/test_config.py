@@ -108,7 +108,7 @@ def test_the_main_job_is_splatfields3d_mip_and_splatfields3d_2stage_the_papers_p
 
 
 def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
-    """protocol=two_stage_mip: a Mip-Splatting first stage in its own cache (twice the budget at 4 views or
+    """protocol=two_stage_mip: a Mip-Splatting first stage in its own cache (three times the budget at 4 views or
     fewer), the 2D Mip filter in both stages, the 3D filter on the predicted splats, and a second stage on
     several views per step, stopped before its LR schedule ends (schedule.two_stage_mip_*); everything else
     as protocol=two_stage."""
@@ -123,7 +123,7 @@ def test_two_stage_mip_protocol_differs_from_two_stage_only_where_it_says():
     assert paper_mip.model.network.backbone.n_up_blocks == 4  # scale=paper keeps B.2's 160 px planes
     cli = _compose(["field_budget.triplane_up_blocks=3"])  # a command-line override wins
     assert cli.model.network.backbone.n_up_blocks == 3
-    assert mip.init.run_dir.endswith("/mip_views4_it3000_seed0")
+    assert mip.init.run_dir.endswith("/mip_views4_it4500_seed0")
     assert plain.init.run_dir.endswith("/views4_it1500_seed0") and "mip_" not in plain.init.run_dir
     # the main job's second stage (scale=cpu): stopped at 600 iterations on the network LR schedule of a
     # full 1 500-iteration second stage; one view per step at 4 training views or fewer, 4 above
