@@ -129,7 +129,7 @@ def test_equal_validation_scores_go_to_the_cheaper_budget(tmp_path: Path) -> Non
 
 def test_budgets_are_compared_on_the_seeds_they_share(tmp_path: Path) -> None:
     """x1 ran seeds 0 and 1, x2 seed 0 only: x2 wins on seed 0 (19.5 against 19.0), and x1's lucky seed 1 (22.0)
-    must not decide; over all of each budget's seeds x1 would score 20.5."""
+    must not decide; over all of its seeds x1 scores 20.5, which its cell shows."""
     for scene in ("a", "b"):
         write_run(tmp_path, f"x1_s0_{scene}", scene=scene, budget=1, curve=((50, 18.0), (100, 19.0)))
         write_run(tmp_path, f"x1_s1_{scene}", scene=scene, seed=1, budget=1, curve=((50, 18.0), (100, 22.0)))
@@ -137,8 +137,22 @@ def test_budgets_are_compared_on_the_seeds_they_share(tmp_path: Path) -> None:
     board = board_of(tmp_path)
     gs = entry(board, "gs3d")
     assert gs.chosen is not None and gs.chosen.value == 2
-    assert {b.value: sc.score for b, sc in gs.scores.items()} == {1: pytest.approx(19.0), 2: pytest.approx(19.5)}
-    assert "budgets compared on the scenes and seeds all of them finished (a, b; seed 0)" in render_markdown(board)
+    assert {b.value: sc.score for b, sc in gs.scores.items()} == {1: pytest.approx(20.5), 2: pytest.approx(19.5)}
+    text = render_markdown(board)
+    assert "×2 against ×1 on the runs both have (a, b; seed 0): 19.50 vs 19.00" in text
+    assert "×1: 20.50 · **×2: 19.50 (seed 0)**" in text
+
+
+def test_a_budget_on_fewer_seeds_does_not_change_the_others_comparison(tmp_path: Path) -> None:
+    """x1 and x2 ran seeds 0 and 1 and x2 is better over both (19.7 against 19.5) though worse on seed 0; x3 ran
+    seed 0 only and is worse than x2 there. Comparing all three on seed 0 alone would choose x1; the choice is x2."""
+    finals = {1: (19.0, 20.0), 2: (18.8, 20.6), 3: (18.7,)}
+    for budget, values in finals.items():
+        for seed, val in enumerate(values):
+            write_run(tmp_path, f"x{budget}_s{seed}", seed=seed, budget=budget, curve=((50, 17.0), (100, val)))
+    gs = entry(board_of(tmp_path), "gs3d")
+    assert gs.chosen is not None and gs.chosen.value == 2
+    assert not gs.chose_largest()
 
 
 def test_a_run_without_a_validation_curve_cannot_be_selected(tmp_path: Path) -> None:

@@ -5,10 +5,12 @@
 A *method* is the record's ``experiment`` (else ``method``) plus `` + <sparse>`` when ``choices.sparse``
 is set and not ``none``. Its candidate budgets are the values of ``keys.budget_scale`` (else
 ``keys.iterations``) among its runs. For every method and view count (``keys.n_views``) the budget
-with the highest *selection score* is chosen: the mean over scenes (of the mean over seeds) of the
-final validation PSNR, the last point of the run's ``curve`` when ``curve_split`` is ``val``. Budgets
-are compared on the (scene, seed) pairs every candidate has a score for; equal scores go to the cheaper budget.
-A run without a validation curve cannot be selected. Test views are read only for the reported
+is chosen on the final validation PSNR, the last point of the run's ``curve`` when ``curve_split`` is
+``val``: its *score* is the mean over scenes (of the mean over seeds). Budgets are tried from the cheapest up,
+and a larger one replaces the current choice only when it scores higher on the (scene, seed) pairs the two
+share, so a budget run on one seed is compared with the choice on that seed, and never changes which seeds
+decide between the others; equal scores keep the cheaper budget. A run without a validation curve cannot be
+selected. Test views are read only for the reported
 numbers at the chosen budget:
 
 * test PSNR / SSIM: mean over scenes, ± the std over seeds of the scene mean (seeds covering every
@@ -51,10 +53,10 @@ VAL_SPLIT = "val"
 BUDGET_KEYS = ("budget_scale", "iterations")
 TIE_TOLERANCE = 1e-9  # selection scores closer than this (dB) are equal
 SELECTION_RULE = (
-    "For every method and view count the budget (keys.budget_scale, else keys.iterations) with the highest "
-    "mean final validation PSNR over scenes and seeds is chosen (budgets compared on the scenes and seeds all of "
-    "them finished; ties go to the cheaper budget); test views are read only for the numbers reported at that "
-    "budget."
+    "For every method and view count a budget (keys.budget_scale, else keys.iterations) is chosen on the mean "
+    "final validation PSNR over scenes and seeds: from the cheapest up, a larger budget replaces the choice only "
+    "when it scores higher on the scenes and seeds the two share (ties keep the cheaper one; the val column is "
+    "each budget's mean over its own runs); test views are read only for the numbers reported at that budget."
 )
 
 
@@ -268,7 +270,7 @@ def pareto_staircase(points: Iterable[tuple[float, float]]) -> list[tuple[float,
 
 @dataclass(frozen=True)
 class BudgetScore:
-    """A candidate budget: its selection score over ``scenes`` and what its runs are."""
+    """A candidate budget: its score over its own runs, each (scene, seed)'s final validation PSNR, its runs."""
 
     budget: Budget
     score: float | None
@@ -277,48 +279,66 @@ class BudgetScore:
     n_failed: int
     n_unfinished: int
     n_no_val: int  # ok runs without a validation curve
+    finals: dict[tuple[str, str], float] = field(default_factory=dict)  # (scene, seed) -> final val PSNR
 
 
-def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> tuple[dict[Budget, BudgetScore], list[str]]:
-    """Each budget's mean final validation PSNR over the (scene, seed) pairs every scored budget has; notes.
+def mean_of_scenes(finals: Mapping[tuple[str, str], float], pairs: Iterable[tuple[str, str]]) -> float | None:
+    """Mean over scenes of the mean over seeds of ``finals`` on ``pairs``; None without a pair."""
+    by_scene: dict[str, list[float]] = defaultdict(list)
+    for scene, seed in pairs:
+        by_scene[scene].append(finals[(scene, seed)])
+    return statistics.fmean(statistics.fmean(vs) for vs in by_scene.values()) if by_scene else None
 
-    A budget run with more seeds than another is scored on the seeds they share, so one seed's luck cannot
-    decide between budgets; without a shared pair each budget is scored on its own runs.
-    """
-    finals = {b: means_by(runs, Run.final_val, lambda run: (run.scene, str(run.seed))) for b, runs in groups.items()}
-    scored = [set(s) for s in finals.values() if s]
-    common = set.intersection(*scored) if scored else set()
-    notes = []
-    if len(scored) > 1 and not common:
-        notes.append("its budgets share no (scene, seed) pair with a validation score: each is scored on its own "
-                     "runs")
-    elif any(s != common for s in scored):
-        scenes, seeds = sorted({sc for sc, _ in common}), sorted({sd for _, sd in common})
-        notes.append(f"budgets compared on the scenes and seeds all of them finished ({', '.join(scenes)}; "
-                     f"seed {', '.join(seeds)})")
+
+def score_budgets(groups: Mapping[Budget, Sequence[Run]]) -> dict[Budget, BudgetScore]:
+    """Each budget's mean final validation PSNR over its own (scene, seed) pairs, and the pairs' values."""
     scores = {}
     for budget in sorted(groups):
-        runs, per_pair = groups[budget], finals[budget]
-        use = [pair for pair in sorted(per_pair) if pair in common or not common]
-        by_scene: dict[str, list[float]] = defaultdict(list)
-        for scene, seed in use:
-            by_scene[scene].append(per_pair[(scene, seed)])
-        score = statistics.fmean(statistics.fmean(vs) for vs in by_scene.values()) if by_scene else None
+        runs = groups[budget]
+        finals = means_by(runs, Run.final_val, lambda run: (run.scene, str(run.seed)))
         scores[budget] = BudgetScore(
-            budget, score, tuple(sorted(by_scene)), len(runs), sum(r.record.status == "failed" for r in runs),
+            budget, mean_of_scenes(finals, finals), tuple(sorted({scene for scene, _ in finals})), len(runs),
+            sum(r.record.status == "failed" for r in runs),
             sum(r.record.status in ("running", "interrupted") for r in runs),
-            sum(r.ok and not r.val_curve() for r in runs),
+            sum(r.ok and not r.val_curve() for r in runs), finals,
         )  # fmt: skip
-    return scores, notes
+    return scores
 
 
-def choose_budget(scores: Mapping[Budget, BudgetScore]) -> Budget | None:
-    """The budget with the best score; among equal scores the cheapest; None when none has a score."""
-    scored = {b: s.score for b, s in sorted(scores.items()) if s.score is not None}
-    if not scored:
-        return None
-    best = max(scored.values())
-    return next(b for b, score in scored.items() if score >= best - TIE_TOLERANCE)
+def _pairs_text(pairs: Iterable[tuple[str, str]]) -> str:
+    scenes, seeds = sorted({sc for sc, _ in pairs}), sorted({sd for _, sd in pairs})
+    return f"{', '.join(scenes)}; seed {', '.join(seeds)}"
+
+
+def choose_budget(scores: Mapping[Budget, BudgetScore]) -> tuple[Budget | None, list[str]]:
+    """The chosen budget and how it was compared; None when no budget has a score.
+
+    From the cheapest budget up, a larger one replaces the current choice only when its score on the (scene,
+    seed) pairs the two share is higher; without a shared pair the two are compared on their own runs.
+    """
+    chosen: Budget | None = None
+    notes = []
+    for budget, s in sorted(scores.items()):
+        if s.score is None:
+            continue
+        if chosen is None:
+            chosen = budget
+            continue
+        held = scores[chosen].finals
+        shared = sorted(held.keys() & s.finals.keys())
+        if shared:
+            new, old = mean_of_scenes(s.finals, shared), mean_of_scenes(held, shared)
+            if set(shared) != set(held) or set(shared) != set(s.finals):
+                notes.append(f"{budget.label()} against {chosen.label()} on the runs both have "
+                             f"({_pairs_text(shared)}): {new:.2f} vs {old:.2f}")  # fmt: skip
+        else:
+            new, old = s.score, scores[chosen].score
+            notes.append(f"{budget.label()} and {chosen.label()} share no (scene, seed) pair: compared on their "
+                         "own runs")  # fmt: skip
+        assert new is not None and old is not None
+        if new > old + TIE_TOLERANCE:
+            chosen = budget
+    return chosen, notes
 
 
 def _budget_notes(scores: Mapping[Budget, BudgetScore], chosen: Budget | None) -> list[str]:
@@ -411,8 +431,8 @@ def make_entry(method: str, n_views: Any, runs: list[Run]) -> Entry:
     groups: dict[Budget, list[Run]] = defaultdict(list)
     for run in runs:
         groups[run.budget].append(run)
-    scores, notes = score_budgets(groups)
-    chosen = choose_budget(scores)
+    scores = score_budgets(groups)
+    chosen, notes = choose_budget(scores)
     return Entry(method, n_views, scores, chosen, runs, notes + _budget_notes(scores, chosen))
 
 
@@ -580,11 +600,19 @@ def _budget_cell(board: Leaderboard, entry: Entry) -> str:
     return entry.budget_label() + (f" ({its[0]} it)" if len(its) == 1 and entry.chosen.key != "iterations" else "")
 
 
+def _seeds(score: BudgetScore) -> set[str]:
+    return {seed for _, seed in score.finals}
+
+
 def _scores_cell(board: Leaderboard, entry: Entry) -> str:
+    """Each budget's score, the chosen one in bold; a budget scored on fewer seeds than another names its seeds."""
     parts = []
+    most = max((len(_seeds(s)) for s in entry.scores.values()), default=0)
     for budget, score in entry.scores.items():
         refs = _refs(board, (r for r in entry.runs if r.budget == budget)) if score.score is None else ""
-        text = f"{budget.label()}: {_fmt(score.score, 2)}{refs}"
+        seeds = _seeds(score)
+        fewer = f" (seed {', '.join(sorted(seeds))})" if seeds and len(seeds) < most else ""
+        text = f"{budget.label()}: {_fmt(score.score, 2)}{fewer}{refs}"
         parts.append(f"**{text}**" if budget == entry.chosen else text)
     return " · ".join(parts)
 
