@@ -153,6 +153,7 @@ def test_a_budget_on_fewer_seeds_does_not_change_the_others_comparison(tmp_path:
     gs = entry(board_of(tmp_path), "gs3d")
     assert gs.chosen is not None and gs.chosen.value == 2
     assert not gs.chose_largest()
+    assert method_json(board_of(tmp_path), "gs3d")["val_psnr_by_budget"]["budget_scale=3"]["seeds"] == ["0"]
 
 
 def test_a_run_without_a_validation_curve_cannot_be_selected(tmp_path: Path) -> None:

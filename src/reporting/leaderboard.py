@@ -735,7 +735,8 @@ def _budget_json(budget: Budget | None, entry: Entry) -> dict[str, Any] | None:
 
 def entry_json(board: Leaderboard, entry: Entry) -> dict[str, Any]:
     """One method's leaderboard data as plain JSON values."""
-    scores = {b.name(): {"val_psnr": s.score, "scenes": list(s.scenes), "runs": s.n_runs, "failed": s.n_failed,
+    scores = {b.name(): {"val_psnr": s.score, "scenes": list(s.scenes), "seeds": sorted(_seeds(s), key=sort_key),
+                         "runs": s.n_runs, "failed": s.n_failed,
                          "unfinished": s.n_unfinished, "ok_without_val_curve": s.n_no_val}
               for b, s in entry.scores.items()}  # fmt: skip
     at = entry.at_ref
