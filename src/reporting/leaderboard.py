@@ -281,6 +281,10 @@ class BudgetScore:
     n_no_val: int  # ok runs without a validation curve
     finals: dict[tuple[str, str], float] = field(default_factory=dict)  # (scene, seed) -> final val PSNR
 
+    @property
+    def seeds(self) -> set[str]:
+        return {seed for _, seed in self.finals}
+
 
 def mean_of_scenes(finals: Mapping[tuple[str, str], float], pairs: Iterable[tuple[str, str]]) -> float | None:
     """Mean over scenes of the mean over seeds of ``finals`` on ``pairs``; None without a pair."""
@@ -600,17 +604,13 @@ def _budget_cell(board: Leaderboard, entry: Entry) -> str:
     return entry.budget_label() + (f" ({its[0]} it)" if len(its) == 1 and entry.chosen.key != "iterations" else "")
 
 
-def _seeds(score: BudgetScore) -> set[str]:
-    return {seed for _, seed in score.finals}
-
-
 def _scores_cell(board: Leaderboard, entry: Entry) -> str:
     """Each budget's score, the chosen one in bold; a budget scored on fewer seeds than another names its seeds."""
     parts = []
-    most = max((len(_seeds(s)) for s in entry.scores.values()), default=0)
+    most = max((len(s.seeds) for s in entry.scores.values()), default=0)
     for budget, score in entry.scores.items():
         refs = _refs(board, (r for r in entry.runs if r.budget == budget)) if score.score is None else ""
-        seeds = _seeds(score)
+        seeds = score.seeds
         fewer = f" (seed {', '.join(sorted(seeds))})" if seeds and len(seeds) < most else ""
         text = f"{budget.label()}: {_fmt(score.score, 2)}{fewer}{refs}"
         parts.append(f"**{text}**" if budget == entry.chosen else text)
@@ -735,7 +735,7 @@ def _budget_json(budget: Budget | None, entry: Entry) -> dict[str, Any] | None:
 
 def entry_json(board: Leaderboard, entry: Entry) -> dict[str, Any]:
     """One method's leaderboard data as plain JSON values."""
-    scores = {b.name(): {"val_psnr": s.score, "scenes": list(s.scenes), "seeds": sorted(_seeds(s), key=sort_key),
+    scores = {b.name(): {"val_psnr": s.score, "scenes": list(s.scenes), "seeds": sorted(s.seeds, key=sort_key),
                          "runs": s.n_runs, "failed": s.n_failed,
                          "unfinished": s.n_unfinished, "ok_without_val_curve": s.n_no_val}
               for b, s in entry.scores.items()}  # fmt: skip
