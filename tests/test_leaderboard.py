@@ -156,6 +156,13 @@ def test_a_budget_on_fewer_seeds_does_not_change_the_others_comparison(tmp_path:
     assert method_json(board_of(tmp_path), "gs3d")["val_psnr_by_budget"]["budget_scale=3"]["seeds"] == ["0"]
 
 
+def test_a_budget_on_fewer_scenes_says_so(tmp_path: Path) -> None:
+    for scene in ("a", "b"):
+        write_run(tmp_path, f"x1_{scene}", scene=scene, budget=1, curve=((50, 17.0), (100, 19.0)))
+    write_run(tmp_path, "x2_a", scene="a", budget=2, curve=((50, 17.0), (100, 19.5)))
+    assert "×1: 19.00 · **×2: 19.50 (1 of 2 scenes)**" in render_markdown(board_of(tmp_path))
+
+
 def test_a_run_without_a_validation_curve_cannot_be_selected(tmp_path: Path) -> None:
     write_run(tmp_path, "x1", budget=1, curve=((50, 18.0), (100, 19.0)))
     write_run(tmp_path, "x2", budget=2, psnr=30.0, curve=((100, 25.0), (200, 29.0)), split="test")

@@ -605,14 +605,17 @@ def _budget_cell(board: Leaderboard, entry: Entry) -> str:
 
 
 def _scores_cell(board: Leaderboard, entry: Entry) -> str:
-    """Each budget's score, the chosen one in bold; a budget scored on fewer seeds than another names its seeds."""
+    """Each budget's score, the chosen one in bold; a budget scored on fewer seeds or scenes than another says
+    on which (its cell is then not comparable with the others': the notes give the pairwise comparisons)."""
     parts = []
-    most = max((len(s.seeds) for s in entry.scores.values()), default=0)
+    most_seeds = max((len(s.seeds) for s in entry.scores.values()), default=0)
+    most_scenes = max((len(s.scenes) for s in entry.scores.values()), default=0)
     for budget, score in entry.scores.items():
         refs = _refs(board, (r for r in entry.runs if r.budget == budget)) if score.score is None else ""
-        seeds = score.seeds
-        fewer = f" (seed {', '.join(sorted(seeds))})" if seeds and len(seeds) < most else ""
-        text = f"{budget.label()}: {_fmt(score.score, 2)}{fewer}{refs}"
+        fewer = [f"seed {', '.join(sorted(score.seeds, key=sort_key))}"] if 0 < len(score.seeds) < most_seeds else []
+        fewer += [f"{len(score.scenes)} of {most_scenes} scenes"] if 0 < len(score.scenes) < most_scenes else []
+        on = " (" + "; ".join(fewer) + ")" if fewer else ""
+        text = f"{budget.label()}: {_fmt(score.score, 2)}{on}{refs}"
         parts.append(f"**{text}**" if budget == entry.chosen else text)
     return " · ".join(parts)
 
