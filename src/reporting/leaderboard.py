@@ -8,10 +8,9 @@ is set and not ``none``. Its candidate budgets are the values of ``keys.budget_s
 is chosen on the final validation PSNR, the last point of the run's ``curve`` when ``curve_split`` is
 ``val``: its *score* is the mean over scenes (of the mean over seeds). Budgets are tried from the cheapest up,
 and a larger one replaces the current choice only when it scores higher on the (scene, seed) pairs the two
-share, so a budget run on one seed is compared with the choice on that seed, and never changes which seeds
-decide between the others; equal scores keep the cheaper budget. A run without a validation curve cannot be
-selected. Test views are read only for the reported
-numbers at the chosen budget:
+share, so a budget run on one seed is compared with the choice on that seed alone, and the cheaper budgets
+keep their comparison on all the seeds they share; equal scores keep the cheaper budget. A run without a
+validation curve cannot be selected. Test views are read only for the reported numbers at the chosen budget:
 
 * test PSNR / SSIM: mean over scenes, ± the std over seeds of the scene mean (seeds covering every
   scene, at least two);
