@@ -1,8 +1,10 @@
 """Tables (and charts) from sweep results: ``python -m src.tables SWEEP_DIR [SWEEP_DIR...]``.
 
-Reads ``SWEEP_DIR/multirun.yaml`` (its ``report:`` block) and every ``SWEEP_DIR/**/metrics.json``,
-prints the tables, and optionally writes ``OUT/table.{md,tex,csv}``, ``chart.{png,svg}`` (speed
-against accuracy) and ``curves.{png,svg}`` (learning curves, when the records carry a ``curve``).
+Reads ``SWEEP_DIR/multirun.yaml`` (its ``report:`` block) and every ``SWEEP_DIR/**/metrics.json`` (or the runs
+of a run archive ``runs.jsonl.gz`` given in place of a directory), prints the tables, and optionally writes
+``OUT/table.{md,tex,csv}``, ``OUT/runs.jsonl.gz`` (every run read: the table can be rebuilt or extended from it,
+:mod:`src.reporting.archive`), ``chart.{png,svg}`` (speed against accuracy) and ``curves.{png,svg}`` (learning
+curves, when the records carry a ``curve``).
 A bare ``--out`` writes to ``sweeps/results/<sweep name>/`` (the name of the sweep's config file,
 read from its ``multirun.yaml``), the place where the current result of each sweep is kept.
 Conventions and the record contract: :mod:`src.reporting`.
@@ -26,6 +28,7 @@ import yaml
 
 from src.reporting import load, make_tables, resolve_spec
 from src.reporting.aggregate import ReportSpec, build_report
+from src.reporting.archive import ArchiveError, is_archive, read_archive, write_archive
 from src.reporting.collect import Collection, find_metrics_files
 from src.reporting.render import FORMATS, render
 from src.utils.record import OneLineParser, OutputBusy, atomic_write_text, cli_error, os_error_line, output_lock
@@ -68,14 +71,17 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         prog="python -m src.tables",
         description="Aggregate metrics.json files of Hydra sweeps into paper-style tables.",
     )
-    parser.add_argument("sweep_dirs", nargs="+", type=Path, metavar="SWEEP_DIR")
+    parser.add_argument("sweep_dirs", nargs="+", type=Path, metavar="SWEEP_DIR",
+                        help="a sweep directory (its **/metrics.json), or a run archive runs.jsonl.gz that an earlier "
+                        "--out wrote (src.reporting.archive)")
     parser.add_argument("--format", choices=FORMATS, default="md", help="output format (default: md)")
     parser.add_argument(
         "--out",
         type=Path,
         nargs="?",
         const=_DEFAULT_OUT,
-        help="also write OUT/table.<format> (and the charts there); bare: sweeps/results/<sweep name>/",
+        help="also write OUT/table.<format>, OUT/runs.jsonl.gz (every run read) and the charts there; bare: "
+        "sweeps/results/<sweep name>/",
     )
     parser.add_argument("--rows", type=_csv_list, help="row keys, comma-separated dotted paths")
     parser.add_argument("--cols", type=_csv_list, help="column keys; '--cols=' → one column per metric")
@@ -97,7 +103,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         "--leaderboard",
         action="store_true",
         help="rank every method at its own budget, chosen on validation views: print it, and with --out write "
-        "leaderboard.md/.json and leaderboard_curves.png/.svg (src.reporting.leaderboard)",
+        "leaderboard.md/.json, leaderboard_curves.png/.svg and runs.jsonl.gz (src.reporting.leaderboard)",
     )
     parser.add_argument(
         "--reference",
@@ -138,8 +144,15 @@ def unknown_keys(records: Sequence, spec) -> str | None:
 
 
 def check_sweep_dirs(sweep_dirs: Sequence[Path]) -> str | None:
-    """A one-line message for the first sweep directory that is missing, a file, or holds no metrics.json."""
+    """A one-line message for the first sweep directory that is missing, a file, or holds no metrics.json, or the
+    first run archive (``runs.jsonl.gz``) that is missing or cannot be read."""
     for sweep_dir in sweep_dirs:
+        if is_archive(sweep_dir):
+            try:
+                read_archive(sweep_dir)
+            except ArchiveError as exc:
+                return f"{sweep_dir}: {exc}; expected a run archive written by src.tables --out (gzip of JSON lines)"
+            continue
         if not sweep_dir.exists():
             return f"{sweep_dir}: no such directory; expected a sweep directory (holding **/metrics.json)"
         if not sweep_dir.is_dir():
@@ -170,9 +183,10 @@ def write_outputs(args: argparse.Namespace, text: str, collection: Collection, s
     with output_lock(out_dir, "choose another --out") if out_dir is not None else nullcontext():
         print(text, end="")
         if args.out is not None:
-            path = args.out / f"table.{args.format}"
-            atomic_write_text(path, text)
-            print(f"wrote {path}", file=sys.stderr)
+            table = args.out / f"table.{args.format}"
+            atomic_write_text(table, text)
+            for path in (table, write_archive(collection.records, args.out)):
+                print(f"wrote {path}", file=sys.stderr)
         if chart is not None:
             from src.reporting.chart import draw_chart, make_curves
 

@@ -1,4 +1,5 @@
-"""Find and read run records: ``**/metrics.json`` under sweep directories, and the sweep's ``report:`` block.
+"""Find and read run records: ``**/metrics.json`` under sweep directories, or a run archive (``runs.jsonl.gz``,
+:mod:`src.reporting.archive`), and the sweep's ``report:`` block.
 
 Only file *contents* are used. Directory names are never parsed: a run's identity comes from its
 ``metrics.json`` (``method``, ``choices``, ``keys``, ...). A file that cannot be used is returned as
@@ -15,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
+from src.reporting.archive import ArchiveError, is_archive, read_archive
 
 STATUSES = ("ok", "failed", "running", "interrupted")
 # Keys an "ok" record must have; failed/running records only need "status".
@@ -189,13 +192,17 @@ def _yaml_error_line(exc: Exception) -> str:
 
 
 def collect(sweep_dirs: Sequence[str | Path]) -> Collection:
-    """Read every metrics.json below the sweep directories and the first ``report:`` block found.
+    """Read every metrics.json below the sweep directories (or every run of a run archive given in their place)
+    and the first ``report:`` block found.
 
     The report block comes from the first ``multirun.yaml`` that has one, else from the first record
     carrying a ``report`` key. Unusable files end up in ``problems``; nothing raises for bad input.
     """
     out = Collection()
     for sweep_dir in map(Path, sweep_dirs):
+        if is_archive(sweep_dir):
+            _collect_archive(sweep_dir, out)
+            continue
         try:
             block = read_report_block(sweep_dir)
         except RecordError as exc:
@@ -212,6 +219,22 @@ def collect(sweep_dirs: Sequence[str | Path]) -> Collection:
     if out.report is None:
         out.report = report_from_records(out.records)
     return out
+
+
+def _collect_archive(path: Path, out: Collection) -> None:
+    """Add the runs of one run archive to ``out`` (an unreadable file or line becomes a :class:`Problem`)."""
+    try:
+        runs, problems, n_lines = read_archive(path)
+    except ArchiveError as exc:
+        out.problems.append(Problem(str(path), str(exc)))
+        return
+    out.n_files += n_lines
+    out.problems.extend(Problem(where, what) for where, what in problems)
+    for run_path, mtime, data in runs:
+        try:
+            out.records.append(record_from_mapping(data, run_path, mtime))
+        except RecordError as exc:
+            out.problems.append(Problem(run_path, str(exc)))
 
 
 def report_from_records(records: Iterable[RunRecord]) -> dict[str, Any] | None:

@@ -23,7 +23,8 @@ validation curve cannot be selected. Test views are read only for the reported n
 
 Outputs (:func:`write_leaderboard`): ``leaderboard.md``, ``leaderboard.json`` and
 ``leaderboard_curves.{png,svg}`` (validation PSNR against total wall time at the chosen budgets,
-with the Pareto front over all methods' points).
+with the Pareto front over all methods' points); beside them the CLI keeps ``runs.jsonl.gz``, every run read
+(:mod:`src.reporting.archive`), from which the board is rebuilt or extended.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from src.reporting.aggregate import dedupe, sort_key
+from src.reporting.archive import write_archive
 from src.reporting.chart import Point, pareto_front, read_curve
 from src.reporting.collect import Collection, RunRecord
 from src.utils.record import OutputBusy, atomic_write_text, cli_error, os_error_line, output_lock
@@ -860,7 +862,7 @@ def leaderboard_cli(collection: Collection, out: Path | None, reference: str | N
     try:
         with output_lock(out, "choose another --out"):
             print(text, end="")
-            for path in write_leaderboard(board, out):
+            for path in [*write_leaderboard(board, out), write_archive(collection.records, out)]:
                 print(f"wrote {path}", file=sys.stderr)
     except OutputBusy as exc:
         return cli_error(str(exc))
