@@ -236,6 +236,33 @@ def test_equal_time_before_the_first_point_is_a_dash(tmp_path: Path) -> None:
     assert table_row(render_markdown(board), "gs3d")[8] == "–"
 
 
+def test_within_the_reference_time_is_the_best_budget_that_fits(tmp_path: Path) -> None:
+    """The reference takes 150 s. gs3d's x4 (400 s) is its board choice; of the budgets that fit, x2 (140 s) beats
+    x1 (60 s) on validation although x1 has the better test PSNR, and x3 (160 s) does not fit."""
+    write_reference(tmp_path)
+    for budget, t, val, test in ((1, 60.0, 19.0, 22.0), (2, 140.0, 19.5, 21.0), (3, 160.0, 20.0, 21.5),
+                                 (4, 400.0, 20.5, 23.0)):  # fmt: skip
+        for seed in (0, 1):
+            write_run(tmp_path, f"gs_x{budget}_s{seed}", budget=budget, seed=seed, train_s=t, psnr=test + 0.1 * seed,
+                      curve=((t / 2, 18.0), (t, val)))  # fmt: skip
+    write_run(tmp_path, "slow", experiment="mip_splatting", budget=2, train_s=300.0, curve=((150, 18.0), (300, 20.0)))
+    board = board_of(tmp_path)
+    gs = entry(board, "gs3d")
+    assert gs.chosen is not None and gs.chosen.value == 4
+    w = gs.within_ref
+    assert w is not None and w.budget.value == 2 and w.time_s == pytest.approx(150.0)
+    assert w.val_psnr == pytest.approx(19.5) and w.train_s == pytest.approx(140.0)
+    assert w.test_psnr.mean == pytest.approx(21.05) and w.test_psnr.std == pytest.approx(0.1 / 2**0.5)
+    assert table_row(render_markdown(board), "gs3d")[9] == "21.05 ± 0.07 (×2)"
+    data = method_json(board, "gs3d")["within_ref_time"]
+    assert data["budget"] == "×2" and data["test_psnr"]["mean"] == pytest.approx(21.05)
+    assert entry(board, "mip_splatting").within_ref is None  # no budget tried fits
+    assert table_row(render_markdown(board), "mip_splatting")[9] == "–"
+    assert method_json(board, "mip_splatting")["within_ref_time"] is None
+    ref = entry(board, REF).within_ref  # the reference fits its own time
+    assert ref is not None and ref.test_psnr.mean == pytest.approx(23.0)
+
+
 def test_pareto_staircase_of_hand_made_points() -> None:
     points = [(4.0, 12.0), (1.0, 10.0), (2.0, 9.0), (3.0, 11.0), (3.0, 12.0), (5.0, 13.0), (6.0, 12.5)]
     assert pareto_staircase(points) == [(1.0, 10.0), (3.0, 12.0), (5.0, 13.0)]
