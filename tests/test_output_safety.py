@@ -157,8 +157,8 @@ def test_every_output_goes_through_unique_temporaries(sweep: Path, tmp_path: Pat
     for _ in range(2):
         assert tables_main([str(sweep), "--out", str(out), "--chart"]) == 0
     capsys.readouterr()
-    assert len(names) == 6 and len(set(names)) == 6  # table.md, chart.png, chart.svg, twice
-    assert sorted(p.name for p in out.iterdir()) == [".lock", "chart.png", "chart.svg", "table.md"]
+    assert len(names) == 8 and len(set(names)) == 8  # table.md, runs.jsonl.gz, chart.png, chart.svg, twice
+    assert sorted(p.name for p in out.iterdir()) == [".lock", "chart.png", "chart.svg", "runs.jsonl.gz", "table.md"]
 
 
 def test_bench_charts_go_through_the_atomic_writer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
