@@ -28,7 +28,7 @@ import yaml
 
 from src.reporting import load, make_tables, resolve_spec
 from src.reporting.aggregate import ReportSpec, build_report
-from src.reporting.archive import ArchiveError, is_archive, read_archive, write_archive
+from src.reporting.archive import is_archive, write_archive
 from src.reporting.collect import Collection, find_metrics_files
 from src.reporting.render import FORMATS, render
 from src.utils.record import OneLineParser, OutputBusy, atomic_write_text, cli_error, os_error_line, output_lock
@@ -144,14 +144,10 @@ def unknown_keys(records: Sequence, spec) -> str | None:
 
 
 def check_sweep_dirs(sweep_dirs: Sequence[Path]) -> str | None:
-    """A one-line message for the first sweep directory that is missing, a file, or holds no metrics.json, or the
-    first run archive (``runs.jsonl.gz``) that is missing or cannot be read."""
+    """A one-line message for the first sweep directory that is missing, a file, or holds no metrics.json (a run
+    archive, ``runs.jsonl.gz``, is checked when it is read: :func:`unreadable_archive`)."""
     for sweep_dir in sweep_dirs:
         if is_archive(sweep_dir):
-            try:
-                read_archive(sweep_dir)
-            except ArchiveError as exc:
-                return f"{sweep_dir}: {exc}; expected a run archive written by src.tables --out (gzip of JSON lines)"
             continue
         if not sweep_dir.exists():
             return f"{sweep_dir}: no such directory; expected a sweep directory (holding **/metrics.json)"
@@ -160,6 +156,14 @@ def check_sweep_dirs(sweep_dirs: Sequence[Path]) -> str | None:
         if not find_metrics_files(sweep_dir):
             return f"no metrics.json under {sweep_dir} (empty or unfinished sweep?); expected run directories"
     return None
+
+
+def unreadable_archive(collection: Collection) -> str | None:
+    """A one-line message for the first run archive that could not be read at all, or None."""
+    problem = next((p for p in collection.problems if p.whole_file), None)
+    if problem is None:
+        return None
+    return f"{problem}; expected a run archive written by src.tables --out (gzip of JSON lines)"
 
 
 def unreadable(collection: Collection) -> str:
@@ -203,12 +207,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     problem = check_sweep_dirs(args.sweep_dirs)
     if problem:
         return cli_error(problem)
+    collection = load(args.sweep_dirs)
+    problem = unreadable_archive(collection)
+    if problem:
+        return cli_error(problem)
     if args.out == _DEFAULT_OUT:
         args.out = default_out(args.sweep_dirs)
         if args.out is None:
             return cli_error("a bare --out needs sweep directories of one named sweep (multirun.yaml); pass --out DIR")
+    if args.chart and args.out is None and is_archive(args.sweep_dirs[0]):
+        return cli_error(f"--chart: {args.sweep_dirs[0]} is a run archive, and charts without --out are written into "
+                         "the first sweep directory; pass --out DIR")
 
-    collection = load(args.sweep_dirs)
     if not collection.records:
         return cli_error(unreadable(collection))
     for skipped in collection.problems:

@@ -120,3 +120,16 @@ def test_tables_with_out_keep_their_runs_too(tmp_path: Path, capsys: pytest.Capt
     assert main([str(out / ARCHIVE_NAME), "--metrics", "psnr"]) == 0
     again = capsys.readouterr().out
     assert "out of memory" in again and again.replace(f"{out / ARCHIVE_NAME}#", "") == first
+
+
+def test_a_chart_from_an_archive_needs_out(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sweep = make_sweep(tmp_path / "sweep")
+    out = tmp_path / "out"
+    assert main([str(sweep), "--metrics", "psnr", "--out", str(out)]) == 0
+    capsys.readouterr()
+    archive = out / ARCHIVE_NAME
+    before = sorted(p.name for p in out.iterdir())
+    assert main([str(archive), "--metrics", "psnr", "--chart"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --chart: {archive} is a run archive") and "pass --out DIR" in err
+    assert sorted(p.name for p in out.iterdir()) == before

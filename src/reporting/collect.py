@@ -93,6 +93,7 @@ class Problem:
 
     path: str
     what: str
+    whole_file: bool = False  # the whole input (a run archive) could not be read, not one record or line
 
     def __str__(self) -> str:
         return f"{self.path}: {self.what}"
@@ -226,7 +227,7 @@ def _collect_archive(path: Path, out: Collection) -> None:
     try:
         runs, problems, n_lines = read_archive(path)
     except ArchiveError as exc:
-        out.problems.append(Problem(str(path), str(exc)))
+        out.problems.append(Problem(str(path), str(exc), whole_file=True))
         return
     out.n_files += n_lines
     out.problems.extend(Problem(where, what) for where, what in problems)
