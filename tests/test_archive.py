@@ -133,3 +133,16 @@ def test_a_chart_from_an_archive_needs_out(tmp_path: Path, capsys: pytest.Captur
     err = capsys.readouterr().err
     assert err.startswith(f"error: --chart: {archive} is a run archive") and "pass --out DIR" in err
     assert sorted(p.name for p in out.iterdir()) == before
+
+
+def test_tables_read_an_archive_once(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    sweep = make_sweep(tmp_path / "sweep")
+    path = tmp_path / ARCHIVE_NAME
+    path.write_bytes(archive_bytes(load([sweep]).records))
+    calls: list[Path] = []
+    real = Path.read_bytes
+    monkeypatch.setattr(Path, "read_bytes", lambda p: (calls.append(p) if p == path else None) or real(p))
+    assert main([str(path), "--leaderboard", "--out", str(tmp_path / "board")]) == 0
+    capsys.readouterr()
+    assert calls == [path]
